@@ -1,0 +1,1 @@
+"""haptex compiler: texture sources -> tactile assets (HAPTEX method)."""

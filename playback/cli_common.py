@@ -1,0 +1,60 @@
+"""Options and error handling shared by the three command-line tools (defined once, here).
+
+``-v/-q`` set the log level, ``--debug`` shows tracebacks. Expected failures
+(:class:`~playback.errors.HaptexError`, ``OSError``) become one line on stderr and exit
+status 1; usage errors exit 2 (click's convention). Progress bars are shown only when
+stderr is a terminal.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from typing import Any, Callable
+
+import click
+
+from playback.errors import HaptexError
+
+LOG = logging.getLogger("haptex")
+EXIT_BAD_INPUT = 1
+EXIT_USAGE = 2
+
+
+def _configure_logging(verbose: int, quiet: int) -> None:
+    level = logging.WARNING - 10 * verbose + 10 * quiet
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(name)s: %(levelname)s: %(message)s"))
+    root = logging.getLogger("haptex")
+    root.handlers[:] = [handler]
+    root.setLevel(max(logging.DEBUG, min(level, logging.CRITICAL)))
+    root.propagate = False
+
+
+def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add ``-v/--verbose``, ``-q/--quiet`` and ``--debug``, and turn expected errors into one line.
+
+    The wrapped command receives ``debug`` as a keyword argument only if it declares it.
+    """
+
+    @click.option("-v", "--verbose", count=True, help="More messages on stderr (repeatable).")
+    @click.option("-q", "--quiet", count=True, help="Fewer messages on stderr (repeatable).")
+    @click.option("--debug", is_flag=True, help="Show full tracebacks on errors.")
+    @functools.wraps(func)
+    def wrapper(*args: Any, verbose: int, quiet: int, debug: bool, **kwargs: Any) -> Any:
+        _configure_logging(verbose, quiet)
+        try:
+            return func(*args, **kwargs)
+        except (HaptexError, OSError) as exc:
+            if debug:
+                raise
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            click.echo(f"{click.get_current_context().info_name}: error: {message}", err=True)
+            sys.exit(EXIT_BAD_INPUT)
+
+    return wrapper
+
+
+def show_progress() -> bool:
+    """Progress bars only when stderr is an interactive terminal."""
+    return sys.stderr.isatty()

@@ -1,0 +1,33 @@
+"""Exceptions shared by the player and the compiler; the CLIs print them as one line."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class HaptexError(Exception):
+    """Base class: an expected failure with a message meant for the user (no traceback)."""
+
+
+class InputError(HaptexError, ValueError):
+    """A bad input file or parameter: the message names the file (when there is one) and the problem.
+
+    Parameters
+    ----------
+    source : str or Path or None
+        The file or spec the problem is in; ``None`` for a bare parameter.
+    problem : str
+        What is wrong, as one line.
+    """
+
+    def __init__(self, source: str | Path | None, problem: str) -> None:
+        self.source = None if source is None else str(source)
+        self.problem = problem
+        super().__init__(problem if source is None else f"{source}: {problem}")
+
+
+class AssetError(InputError):
+    """A tactile asset that cannot be read: not HDF5, wrong format or version, missing or bad data."""
+
+
+class DeviceError(HaptexError):
+    """The stimulator could not be found, written to, or stopped answering."""
