@@ -1,0 +1,179 @@
+"""What one contactor feels during one frame: the shared definition of the analysis.
+
+For a contactor moving along a path p(t) over the surface, with frame centre t_c:
+
+1. the height under it, P(t) = h(p(t)), is weighted per channel by ``W_c(f)``
+   (:meth:`haptex_compile.colours.TwoColourModel.weights`) as a filter over the whole signal,
+   not only the frame (the analysis looks along the surface beyond the frame, which removes the
+   paper's window leakage: a pure tone gives a constant envelope);
+2. the squared envelope ``|z_c(t)|^2`` of the weighted analytic signal is averaged with the
+   *frame window* ``w(t - t_c)``: a Hann window of full width 2 x frame (consecutive frames'
+   windows add up to one, so every instant counts once), convolved with the footprint's extent
+   along the motion (Gaussian of ``sigma / speed`` in time);
+3. the footprint's extent across the motion is a Gaussian average over parallel paths offset by
+   ``b`` (:func:`footprint_offsets`);
+4. the channel intensity is the square root of that mean power, and
+   :meth:`~haptex_compile.colours.TwoColourModel.decompose` turns (I_p, I_np) into (a40, a320).
+
+The reference renderer evaluates this on finite stretches (``margin_ms`` beyond the window on
+each side, linear trend removed, tapered in the margins); the tables evaluate the same filter
+along whole lines. Both sample heights through :func:`haptex_compile.surface.sample_height`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from haptex_compile.colours import TwoColourModel
+
+ANALYSIS_RATE_HZ = 2048.0  # output rate of the envelope; Nyquist 1024 Hz > band top (800 Hz)
+DEFAULT_FOOTPRINT_SIGMA_MM = 0.25
+FOOTPRINT_TRUNCATION = 3.0  # footprint Gaussians are cut at 3 sigma
+
+
+@dataclass(frozen=True)
+class AnalysisSettings:
+    """Parameters of the frame analysis (stored in every asset).
+
+    Attributes
+    ----------
+    frame_ms : float
+        Frame duration (25 ms as in the paper).
+    footprint_sigma_mm : float
+        Standard deviation of the Gaussian skin footprint of a contactor; 0 is the paper's point.
+    margin_ms : float
+        How far the reference renderer looks beyond the frame window on each side.
+    """
+
+    frame_ms: float = 25.0
+    footprint_sigma_mm: float = DEFAULT_FOOTPRINT_SIGMA_MM
+    margin_ms: float = 150.0
+
+    def __post_init__(self) -> None:
+        if not (1.0 <= self.frame_ms <= 1000.0):
+            raise ValueError("frame_ms must be between 1 and 1000")
+        if not (0.0 <= self.footprint_sigma_mm <= 5.0):
+            raise ValueError("footprint sigma must be between 0 and 5 mm")
+
+    def window_half_s(self, speed_mm_s: float) -> float:
+        """Half support of the frame window (s) including the along-motion footprint."""
+        sigma_t = self.footprint_sigma_mm / speed_mm_s if speed_mm_s > 0 else 0.0
+        return self.frame_ms / 1000.0 + FOOTPRINT_TRUNCATION * sigma_t
+
+
+@lru_cache(maxsize=64)
+def _window_table(frame_ms: float, sigma_t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    t_frame = frame_ms / 1000.0
+    half = t_frame + FOOTPRINT_TRUNCATION * sigma_t_s
+    step = (min(t_frame, sigma_t_s) if sigma_t_s > 0 else t_frame) / 200.0
+    n = int(np.ceil(half / step))
+    t = np.arange(-n, n + 1) * step
+    hann = np.where(np.abs(t) < t_frame, np.cos(np.pi * t / (2 * t_frame)) ** 2, 0.0)
+    if sigma_t_s > 0:
+        m = int(np.ceil(FOOTPRINT_TRUNCATION * sigma_t_s / step))
+        g = np.exp(-0.5 * (np.arange(-m, m + 1) * step / sigma_t_s) ** 2)
+        hann = np.convolve(hann, g / g.sum(), mode="same")
+    return t, hann
+
+
+def frame_window(offset_s: np.ndarray, frame_ms: float, sigma_t_s: float = 0.0) -> np.ndarray:
+    """Frame window at time offsets from the frame centre (unnormalised, peak about 1).
+
+    Hann of full width ``2 * frame_ms`` convolved with a Gaussian of ``sigma_t_s`` (the
+    footprint along the motion, in time), truncated at 3 sigma.
+    """
+    t, w = _window_table(float(frame_ms), float(sigma_t_s))
+    return np.interp(np.asarray(offset_s, dtype=float), t, w, left=0.0, right=0.0)
+
+
+def footprint_offsets(sigma_mm: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Across-motion offsets (mm) and normalised Gaussian weights of the footprint.
+
+    Offsets are multiples of `spacing_mm` within 3 sigma; sigma 0 gives the single point 0.
+    """
+    if sigma_mm <= 0:
+        return np.zeros(1), np.ones(1)
+    m = int(np.floor(FOOTPRINT_TRUNCATION * sigma_mm / spacing_mm))
+    b = np.arange(-m, m + 1) * spacing_mm
+    g = np.exp(-0.5 * (b / sigma_mm) ** 2)
+    return b, g / g.sum()
+
+
+def across_spacing_mm(sigma_mm: float, pixel_size_mm: float, speed_mm_s: float, model: TwoColourModel) -> float:
+    """Spacing of the parallel paths that sample the footprint across the motion.
+
+    The weighted signal varies across the motion on the scale of its shortest wavelength,
+    ``speed / band_top``; paths are spaced by half of that (at least one pixel, at most sigma/3),
+    rounded down to a whole number of pixels so the tables can use a subset of their lines.
+    """
+    if sigma_mm <= 0:
+        return pixel_size_mm
+    want = min(sigma_mm / 3.0, speed_mm_s / (2.0 * model.band.high_stop_hz))
+    return pixel_size_mm * max(1, int(np.floor(want / pixel_size_mm)))
+
+
+def stretch_channel_power(
+    heights_um: np.ndarray,
+    fine_dt_s: float,
+    decimation: int,
+    window_weights: np.ndarray,
+    model: TwoColourModel,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean channel power of finite stretches (reference renderer's inner step).
+
+    Parameters
+    ----------
+    heights_um : ndarray [..., n_fine]
+        Heights sampled every `fine_dt_s`; the stretch is centred on the frame centre.
+    fine_dt_s : float
+        Fine sample spacing; ``decimation * fine_dt_s`` is the envelope's sample spacing.
+    decimation : int
+        Ratio of fine samples to envelope samples; ``n_fine`` must be a multiple of it.
+    window_weights : ndarray [n_fine // decimation]
+        Frame-window weights at the envelope's sample times (zero in the margins).
+    model : TwoColourModel
+
+    Returns
+    -------
+    (power_p, power_np) : ndarrays [...]
+        Window-weighted mean of the squared envelopes (dimensionless, in threshold units squared).
+    """
+    h = np.asarray(heights_um, dtype=float)
+    n_fine = h.shape[-1]
+    if n_fine % decimation:
+        raise ValueError("stretch length must be a multiple of the decimation")
+    n_out = n_fine // decimation
+    # Taper: flat where the window is, raised cosine in the margins (so no edge step reaches it).
+    support = np.nonzero(window_weights > 0)[0]
+    j = np.arange(n_fine) / decimation
+    lo, hi = support[0] - 0.5, support[-1] + 0.5
+    taper = np.ones(n_fine)
+    left = j < lo
+    right = j > hi
+    taper[left] = 0.5 * (1 - np.cos(np.pi * (j[left] + 0.5) / (lo + 0.5)))
+    taper[right] = 0.5 * (1 - np.cos(np.pi * (n_out - 0.5 - j[right]) / (n_out - 0.5 - hi)))
+    # Remove the mean and linear trend: slow trends carry no vibration (and must not leak through
+    # the taper). The fit is weighted by a smooth bump (cos^4 over the stretch) whose transform
+    # decays fast, so in-band tones project almost nothing onto the trend.
+    t = np.arange(n_fine) - (n_fine - 1) / 2.0
+    fit_w = np.cos(np.pi * t / n_fine) ** 4
+    sw = fit_w.sum()
+    mean_h = (h * fit_w).sum(axis=-1, keepdims=True) / sw
+    tc = t - (t * fit_w).sum() / sw
+    slope = (h * fit_w * tc).sum(axis=-1, keepdims=True) / (fit_w * tc * tc).sum()
+    x = (h - mean_h - slope * tc) * taper
+    spec = np.fft.rfft(x, axis=-1)
+    freqs = np.fft.rfftfreq(n_fine, d=fine_dt_s)[: n_out // 2]
+    spec = spec[..., : n_out // 2]
+    wp, wnp = model.weights(freqs)
+    scale = 2.0 / decimation  # analytic signal (x2 for positive bins), n_fine -> n_out inverse FFT
+    full = np.zeros(h.shape[:-1] + (n_out,), dtype=complex)
+    wsum = window_weights.sum()
+    powers = []
+    for w in (wp, wnp):
+        full[..., : n_out // 2] = spec * (scale * w)
+        z = np.fft.ifft(full, axis=-1)
+        powers.append((np.abs(z) ** 2 * window_weights).sum(axis=-1) / wsum)
+    return powers[0], powers[1]

@@ -1,0 +1,709 @@
+"""Stochastic discovery of the translation lattice of a (fabric) image.
+
+Method (paper section 5.1, "geometrical and stochastic methods"):
+
+1. Flatten: remove a quadratic illumination trend, subtract a heavy blur and equalise the local
+   contrast, so uneven light and stains do not dominate the correlation.
+2. Candidates from the data: the normalised cross-correlation (NCC) of the image with itself for
+   every integer shift (computed with one zero-padded FFT plus integral images, so every lag is
+   normalised by its own overlap), and its local maxima, localised to sub-pixel by a quadratic fit.
+3. Random-sample consensus: random pairs of strong peaks (seeded, weighted by peak height) propose
+   a basis; each proposal is Lagrange-Gauss reduced, fitted by least squares to the peaks that are
+   integer combinations of it (its consensus), and scored by the *weakest* NCC over its first shell
+   (t1, t2, t1 + t2, t1 - t2). A lattice that is too fine (a harmonic: half a period) has a weak
+   point in that shell; a lattice that is too coarse (a super-lattice) scores as well as the true
+   one but has a larger cell. So the winner is the smallest cell among the proposals whose score is
+   within `_ELIGIBLE_FRACTION` of the best: one defect or one strong harmonic cannot win.
+4. Sub-pixel refinement: weighted least squares over every supported peak out to the search radius
+   (the error of t shrinks with the integer multiple of the far peaks); on large images, the
+   lattice is found on a crop or a reduced copy and refined at full resolution by template
+   matching at growing multiples k t.
+5. Decision from measured evidence (thresholds below were set from the sweep in
+   bench/bench_lattice.py): the first-shell NCC, its prominence over the half-lattice points and
+   the sub-pixel self-similarity of the image under t1 and t2.
+
+Vectors are (x, y) in pixels: x along columns, y along rows (down).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+from scipy import ndimage
+
+__all__ = [
+    "Lattice",
+    "find_lattice",
+    "reduce_basis",
+    "self_similarity",
+    "lattice_distance_px",
+]
+
+# ---- tuning constants (chosen from the generated sweep; see bench/bench_lattice.py) -----------
+_WORK_MAX_PX = 1024          # discovery works on at most this many px per side
+_SEARCH_FRACTION = 0.7       # NCC peaks are searched out to 0.7 x the short image side
+_MIN_OVERLAP_PX = 8          # never trust an NCC lag whose overlap is thinner than this
+_N_NEAREST = 30              # hypotheses are drawn among the 30 nearest strong peaks ...
+_N_STRONGEST = 10            # ... plus the 10 strongest
+_N_PAIRS = 300               # random pairs drawn per run (all pairs when there are fewer)
+_STRONG_FRACTION = 0.3       # a strong peak has NCC >= 0.3 x the highest peak
+_ELIGIBLE_FRACTION = 0.8     # proposals within 80 % of the best shell score compete on cell area
+_MIN_ANGLE_SIN = 0.2         # pairs closer than ~11.5 degrees to parallel propose nothing
+# periodic decision (see _decide): all must hold
+_MIN_SHELL_NCC = 0.2         # weakest NCC over t1, t2, t1 +- t2
+_MIN_PROMINENCE = 0.15       # shell NCC minus the strongest half-lattice NCC
+_MIN_SELF_SIMILARITY = 0.2   # sub-pixel self-similarity at t1 and at t2
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """Result of lattice discovery.
+
+    Attributes
+    ----------
+    periodic : bool
+        False when no lattice is credible; t1_px and t2_px are then zeros.
+    t1_px, t2_px : numpy.ndarray
+        (x, y) in px, sub-pixel; a Lagrange-Gauss reduced basis (t1 shortest, t2 the shortest
+        independent vector, angle between 60 and 120 degrees, det[t1 t2] > 0).
+    confidence : float
+        In [0, 1]; 0.5 is the decision threshold.
+    reason : str
+        One line: why periodic or why not (for the compile report).
+    evidence : dict
+        JSON-serialisable measurements behind the decision.
+    """
+
+    periodic: bool
+    t1_px: np.ndarray
+    t2_px: np.ndarray
+    confidence: float
+    reason: str
+    evidence: dict = field(default_factory=dict)
+
+    @property
+    def basis_px(self) -> np.ndarray:
+        """2x2 matrix with columns t1, t2 (px)."""
+        return np.column_stack([self.t1_px, self.t2_px])
+
+    @property
+    def cell_area_px2(self) -> float:
+        """Area of the unit cell in px^2 (0 when not periodic)."""
+        return float(abs(np.linalg.det(self.basis_px)))
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable form."""
+        return {
+            "periodic": bool(self.periodic),
+            "t1_px": [float(v) for v in self.t1_px],
+            "t2_px": [float(v) for v in self.t2_px],
+            "confidence": float(self.confidence),
+            "reason": self.reason,
+            "evidence": self.evidence,
+        }
+
+
+# ---- small geometry helpers ----------------------------------------------------------------
+
+def reduce_basis(t1, t2) -> tuple[np.ndarray, np.ndarray]:
+    """Lagrange-Gauss reduction of a 2-D lattice basis.
+
+    Parameters
+    ----------
+    t1, t2 : array_like, shape (2,)
+        Any basis (x, y) of the lattice, in px; must be non-parallel.
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        The reduced basis of the same lattice: t1 is a shortest non-zero lattice vector, t2 the
+        shortest one independent of it (so |t1 . t2| <= |t1|^2 / 2 and the angle is within
+        60-120 degrees). Signs are fixed: t1 has x > 0 (or x = 0, y > 0) and det[t1 t2] > 0.
+    """
+    a = np.asarray(t1, dtype=float).copy()
+    b = np.asarray(t2, dtype=float).copy()
+    if a.shape != (2,) or b.shape != (2,):
+        raise ValueError("reduce_basis expects two 2-vectors")
+    scale = max(np.abs(a).max(), np.abs(b).max(), 1e-300)
+    if abs(a[0] * b[1] - a[1] * b[0]) <= 1e-12 * scale * scale:
+        raise ValueError("reduce_basis: t1 and t2 are parallel (no lattice)")
+    for _ in range(1000):
+        if a @ a > b @ b:
+            a, b = b, a
+        mu = round(float(a @ b) / float(a @ a))
+        if mu == 0:
+            break
+        b = b - mu * a
+    if a[0] < 0 or (a[0] == 0 and a[1] < 0):
+        a = -a
+    if a[0] * b[1] - a[1] * b[0] < 0:
+        b = -b
+    # make the tie |b - a| == |b| deterministic: prefer the acute angle... keep t1 . t2 >= 0
+    if a @ b < 0 and np.isclose((b + a) @ (b + a), b @ b, rtol=1e-12, atol=0):
+        b = b + a
+    return a, b
+
+
+def lattice_distance_px(a1, a2, b1, b2) -> float:
+    """How far basis (a1, a2) is from generating the same lattice as (b1, b2), in px.
+
+    The change of basis M = [b1 b2]^-1 [a1 a2] is rounded to integers; if that is not
+    unimodular (|det| = 1) the lattices differ and the result is inf. Otherwise the result is the
+    largest distance between a_i and the matching vector of the b-lattice, [b1 b2] round(M).
+    """
+    a = np.column_stack([np.asarray(a1, float), np.asarray(a2, float)])
+    b = np.column_stack([np.asarray(b1, float), np.asarray(b2, float)])
+    if abs(np.linalg.det(a)) < 1e-9 or abs(np.linalg.det(b)) < 1e-9:
+        return math.inf
+    m = np.rint(np.linalg.solve(b, a))
+    if abs(round(np.linalg.det(m))) != 1:
+        return math.inf
+    return float(np.linalg.norm(a - b @ m, axis=0).max())
+
+
+# ---- image preparation -----------------------------------------------------------------------
+
+def _as_grey_float(image: np.ndarray, name: str = "image") -> np.ndarray:
+    arr = np.asarray(image)
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D grey array, got shape {arr.shape}")
+    if min(arr.shape) < 8:
+        raise ValueError(f"{name} is too small ({arr.shape}); need at least 8 x 8 px")
+    arr = arr.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return arr
+
+
+def _gaussian_blur(x: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur; large sigmas are done on a reduced copy (illumination is smooth)."""
+    x32 = np.ascontiguousarray(x, dtype=np.float32)
+    if sigma_px <= 6.0:
+        return cv2.GaussianBlur(x32, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT).astype(
+            np.float64)
+    rows, cols = x.shape
+    factor = sigma_px / 3.0
+    small_shape = (max(2, round(cols / factor)), max(2, round(rows / factor)))
+    small = cv2.resize(x32, small_shape, interpolation=cv2.INTER_AREA)
+    fx, fy = cols / small_shape[0], rows / small_shape[1]
+    # the area average already blurred by a box of width f (variance f^2 / 12)
+    sx = math.sqrt(max(sigma_px ** 2 - fx ** 2 / 12.0, 0.25)) / fx
+    sy = math.sqrt(max(sigma_px ** 2 - fy ** 2 / 12.0, 0.25)) / fy
+    small = cv2.GaussianBlur(small, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REFLECT)
+    return cv2.resize(small, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+
+
+def _remove_quadratic(x: np.ndarray) -> np.ndarray:
+    """Subtract the least-squares quadratic surface (fitted on a <= 64 x 64 sub-grid)."""
+    rows, cols = x.shape
+    sy, sx = max(1, rows // 64), max(1, cols // 64)
+    yy, xx = np.mgrid[0:rows:sy, 0:cols:sx]
+    u, v = xx / cols - 0.5, yy / rows - 0.5
+    design = np.column_stack([np.ones(u.size), u.ravel(), v.ravel(), (u * u).ravel(),
+                              (u * v).ravel(), (v * v).ravel()])
+    coef, *_ = np.linalg.lstsq(design, x[::sy, ::sx].ravel(), rcond=None)
+    u = np.arange(cols) / cols - 0.5
+    v = (np.arange(rows) / rows - 0.5)[:, None]
+    trend = coef[0] + coef[1] * u + coef[2] * v + coef[3] * u * u + coef[4] * u * v + coef[5] * v * v
+    return x - trend
+
+
+def _prepare_for_discovery(image: np.ndarray, max_period_px: float) -> np.ndarray:
+    """Trend removal, high-pass and local contrast equalisation; zero-mean float64."""
+    x = _remove_quadratic(image)
+    # a Gaussian of sigma >= 0.75 T keeps the fundamental of period T (gain > 1 - 1e-4 ... 0.99)
+    sigma = max(0.75 * max_period_px, 4.0)
+    x = x - _gaussian_blur(x, sigma)
+    energy = _gaussian_blur(x * x, sigma)
+    x = x / np.sqrt(energy + 1e-6 * max(float(energy.mean()), 1e-300))
+    return x - x.mean()
+
+
+# ---- normalised self-correlation for all integer shifts --------------------------------------
+
+def _ncc_map(x: np.ndarray, max_lag_y: int, max_lag_x: int) -> np.ndarray:
+    """NCC of x with itself shifted by every integer (dy, dx), |dy| <= max_lag_y, |dx| <= max_lag_x.
+
+    Each lag is normalised by the means and energies of its own overlap (integral images), so
+    the values are the Pearson correlation over the overlap, as for `self_similarity`.
+    Returns array [2 max_lag_y + 1, 2 max_lag_x + 1], zero lag at the centre.
+    """
+    rows, cols = x.shape
+    fy = sfft.next_fast_len(rows + max_lag_y, real=True)
+    fx = sfft.next_fast_len(cols + max_lag_x, real=True)
+    spec = sfft.rfft2(x, s=(fy, fx), workers=-1)
+    corr = sfft.irfft2(spec * spec.conj(), s=(fy, fx), workers=-1)
+    dy = np.arange(-max_lag_y, max_lag_y + 1)
+    dx = np.arange(-max_lag_x, max_lag_x + 1)
+    # circular correlation c[d] = sum_p x[p + d] x[p]; no wrap since the padding >= size + lag
+    c = corr[np.ix_(dy % fy, dx % fx)]
+
+    def integral(a: np.ndarray) -> np.ndarray:
+        out = np.zeros((rows + 1, cols + 1))
+        out[1:, 1:] = a.cumsum(0).cumsum(1)
+        return out
+
+    s1, s2 = integral(x), integral(x * x)
+    # overlap: p runs over A = rows [max(0,-dy), rows - max(0,dy)), B = A + d
+    a_r0, a_r1 = np.maximum(0, -dy), rows - np.maximum(0, dy)
+    a_c0, a_c1 = np.maximum(0, -dx), cols - np.maximum(0, dx)
+    b_r0, b_r1, b_c0, b_c1 = a_r0 + dy, a_r1 + dy, a_c0 + dx, a_c1 + dx
+
+    def rect(ii: np.ndarray, r0, r1, c0, c1) -> np.ndarray:
+        r0, r1 = r0[:, None], r1[:, None]
+        c0, c1 = c0[None, :], c1[None, :]
+        return ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+
+    n = ((a_r1 - a_r0)[:, None] * (a_c1 - a_c0)[None, :]).astype(float)
+    sa, sb = rect(s1, a_r0, a_r1, a_c0, a_c1), rect(s1, b_r0, b_r1, b_c0, b_c1)
+    ea, eb = rect(s2, a_r0, a_r1, a_c0, a_c1), rect(s2, b_r0, b_r1, b_c0, b_c1)
+    cov = c - sa * sb / n
+    var = np.maximum(ea - sa * sa / n, 1e-300) * np.maximum(eb - sb * sb / n, 1e-300)
+    return np.clip(cov / np.sqrt(var), -1.0, 1.0)
+
+
+def _local_maxima(ncc: np.ndarray, cy: int, cx: int, min_r: float, max_r: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel local maxima of the NCC map in the upper half plane of lags.
+
+    Returns positions (n, 2) as (x, y) lags and their interpolated NCC values, sorted by length.
+    """
+    peak = ncc == ndimage.maximum_filter(ncc, size=3, mode="nearest")
+    peak[[0, -1], :] = False
+    peak[:, [0, -1]] = False
+    iy, ix = np.nonzero(peak)
+    ly, lx = iy - cy, ix - cx
+    r = np.hypot(lx, ly)
+    keep = ((ly > 0) | ((ly == 0) & (lx > 0))) & (r >= min_r - 1.0) & (r <= max_r) & (
+        ncc[iy, ix] > 0)
+    iy, ix = iy[keep], ix[keep]
+    if iy.size == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    z = np.stack([ncc[iy + dy, ix + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
+    z = z.reshape(-1, 3, 3)
+    gx = (z[:, 1, 2] - z[:, 1, 0]) / 2
+    gy = (z[:, 2, 1] - z[:, 0, 1]) / 2
+    hxx = z[:, 1, 2] - 2 * z[:, 1, 1] + z[:, 1, 0]
+    hyy = z[:, 2, 1] - 2 * z[:, 1, 1] + z[:, 0, 1]
+    hxy = (z[:, 2, 2] - z[:, 2, 0] - z[:, 0, 2] + z[:, 0, 0]) / 4
+    det = hxx * hyy - hxy * hxy
+    good = (det > 1e-12) & (hxx < 0)
+    safe = np.where(good, det, 1.0)
+    ox = np.where(good, -(hyy * gx - hxy * gy) / safe, np.where(hxx < 0, -gx / np.where(
+        hxx < 0, hxx, -1.0), 0.0))
+    oy = np.where(good, -(hxx * gy - hxy * gx) / safe, np.where(hyy < 0, -gy / np.where(
+        hyy < 0, hyy, -1.0), 0.0))
+    ox, oy = np.clip(ox, -1, 1), np.clip(oy, -1, 1)
+    value = z[:, 1, 1] + 0.5 * (gx * ox + gy * oy)
+    pos = np.column_stack([ix - cx + ox, iy - cy + oy])
+    r = np.hypot(pos[:, 0], pos[:, 1])
+    keep = r >= min_r
+    order = np.argsort(r[keep], kind="stable")
+    return pos[keep][order], value[keep][order]
+
+
+def _sample(ncc: np.ndarray, cy: int, cx: int, points: np.ndarray) -> np.ndarray:
+    """Bilinear NCC at sub-pixel lags (x, y); NaN outside the map."""
+    coords = np.vstack([points[:, 1] + cy, points[:, 0] + cx])
+    return ndimage.map_coordinates(ncc, coords, order=1, mode="constant", cval=np.nan)
+
+
+# ---- consensus -------------------------------------------------------------------------------
+
+def _tolerance_px(basis: np.ndarray) -> float:
+    """Inlier distance: a fifth of the shortest vector, within 0.5 ... 2 px."""
+    return float(np.clip(0.2 * np.linalg.norm(basis, axis=0).min(), 0.5, 2.0))
+
+
+def _fit_basis(points: np.ndarray, weights: np.ndarray, basis: np.ndarray, radius: float,
+               iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares basis from the peaks that are integer combinations of it (growing radius).
+
+    Returns the refined basis (columns t1, t2) and the boolean inlier mask over `points`.
+    """
+    inliers = np.zeros(len(points), bool)
+    r_now = min(radius, 4.0 * np.linalg.norm(basis, axis=0).max())
+    for it in range(iterations):
+        tol = _tolerance_px(basis)
+        coeff = np.linalg.solve(basis, points.T).T
+        ints = np.rint(coeff)
+        resid = np.linalg.norm(points - ints @ basis.T, axis=1)
+        lengths = np.linalg.norm(points, axis=1)
+        mask = (resid < tol) & (lengths <= r_now) & np.any(ints != 0, axis=1)
+        if mask.sum() < 2 or np.linalg.matrix_rank(ints[mask]) < 2:
+            break
+        w = np.sqrt(np.maximum(weights[mask], 1e-3))
+        sol, *_ = np.linalg.lstsq(ints[mask] * w[:, None], points[mask] * w[:, None], rcond=None)
+        basis = sol.T  # sol rows are t1, t2
+        inliers = mask
+        if r_now >= radius and it >= 1:
+            break
+        r_now = min(radius, 2.0 * r_now)
+    return basis, inliers
+
+
+@dataclass
+class _Hypothesis:
+    basis: np.ndarray          # columns t1, t2 (reduced)
+    shell: float               # weakest NCC over t1, t2, t1 + t2, t1 - t2
+    half: float                # strongest NCC over the half-lattice points
+    support: int               # strong peaks that are lattice points
+    area: float
+
+
+def _shell_scores(ncc: np.ndarray, cy: int, cx: int, basis: np.ndarray) -> tuple[float, float]:
+    t1, t2 = basis[:, 0], basis[:, 1]
+    shell = np.array([t1, t2, t1 + t2, t1 - t2])
+    half = 0.5 * shell
+    vs = _sample(ncc, cy, cx, shell)
+    vh = _sample(ncc, cy, cx, half)
+    vs = vs[np.isfinite(vs)]
+    vh = vh[np.isfinite(vh)]
+    if vs.size < 3:
+        return -1.0, 1.0
+    return float(vs.min()), float(vh.max()) if vh.size else 0.0
+
+
+def _propose(points: np.ndarray, values: np.ndarray, ncc: np.ndarray, cy: int, cx: int,
+             min_period: float, max_period: float, rng: np.random.Generator
+             ) -> tuple[list[_Hypothesis], np.ndarray, int]:
+    """RANSAC-like proposals from random pairs of strong peaks."""
+    strong = values >= max(_STRONG_FRACTION * values.max(), 0.02)
+    sp, sv = points[strong], values[strong]
+    nearest = np.arange(min(_N_NEAREST, len(sp)))
+    strongest = np.argsort(-sv, kind="stable")[:_N_STRONGEST]
+    pool = np.unique(np.concatenate([nearest, strongest]))
+    i, j = np.triu_indices(len(pool), k=1)
+    hyps: dict[tuple, _Hypothesis] = {}
+    if len(i) == 0:
+        return [], sp, 0
+    prob = sv[pool[i]] * sv[pool[j]]
+    prob = prob / prob.sum()
+    n_draw = min(_N_PAIRS, len(i))
+    picks = rng.choice(len(i), size=n_draw, replace=False, p=prob)
+    radius = float(np.linalg.norm(sp, axis=1).max()) if len(sp) else 0.0
+    for k in picks:
+        p, q = sp[pool[i[k]]], sp[pool[j[k]]]
+        cross = abs(p[0] * q[1] - p[1] * q[0])
+        if cross < _MIN_ANGLE_SIN * np.linalg.norm(p) * np.linalg.norm(q):
+            continue
+        a, b = reduce_basis(p, q)
+        basis = np.column_stack([a, b])
+        key = tuple(np.round(basis.ravel() / 0.75).astype(int))
+        if key in hyps:
+            continue
+        basis, inl = _fit_basis(sp, sv, basis, radius)
+        try:
+            a, b = reduce_basis(basis[:, 0], basis[:, 1])
+        except ValueError:
+            continue
+        basis = np.column_stack([a, b])
+        lengths = np.linalg.norm(basis, axis=0)
+        if lengths.min() < min_period or lengths.max() > max_period:
+            hyps[key] = _Hypothesis(basis, -1.0, 1.0, 0, 0.0)
+            continue
+        shell, half = _shell_scores(ncc, cy, cx, basis)
+        hyps[key] = _Hypothesis(basis, shell, half, int(inl.sum()),
+                                float(abs(np.linalg.det(basis))))
+    return [h for h in hyps.values() if h.area > 0], sp, n_draw
+
+
+def _select(hyps: list[_Hypothesis]) -> _Hypothesis | None:
+    if not hyps:
+        return None
+    best = max(h.shell for h in hyps)
+    if best <= 0:
+        return max(hyps, key=lambda h: h.shell)
+    eligible = [h for h in hyps if h.shell >= _ELIGIBLE_FRACTION * best]
+    # smallest cell wins (a super-lattice is as self-similar but coarser); ties by score
+    return min(eligible, key=lambda h: (round(h.area / (0.02 * h.area + 1e-9)), -h.shell))
+
+
+# ---- self-similarity -------------------------------------------------------------------------
+
+def self_similarity(image: np.ndarray, t_px) -> float:
+    """Normalised correlation of the image with itself shifted by t (sub-pixel).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D grey image (any range).
+    t_px : array_like, shape (2,)
+        Shift (x, y) in px; the image at p is compared with the image at p + t, interpolated
+        bicubically, over the overlap.
+
+    Returns
+    -------
+    float
+        Pearson correlation over the overlap, in [-1, 1]; 1 for an image exactly periodic under t.
+
+    Raises
+    ------
+    ValueError
+        If the shifted image does not overlap the original by at least 16 pixels.
+    """
+    img = _as_grey_float(image)
+    t = np.asarray(t_px, dtype=float)
+    if t.shape != (2,) or not np.all(np.isfinite(t)):
+        raise ValueError(f"t_px must be a finite (x, y) pair, got {t_px!r}")
+    rows, cols = img.shape
+    tx, ty = float(t[0]), float(t[1])
+    # only the overlap (plus the cubic margin) is interpolated
+    x0, x1 = max(0, math.floor(-tx) + 2), min(cols, math.ceil(cols - tx) - 2)
+    y0, y1 = max(0, math.floor(-ty) + 2), min(rows, math.ceil(rows - ty) - 2)
+    if (x1 - x0) * (y1 - y0) < 16 or x1 <= x0 or y1 <= y0:
+        raise ValueError(f"shift {tuple(t)} px leaves no overlap in a {rows}x{cols} image")
+    src = img.astype(np.float32)
+    mat = np.array([[1.0, 0.0, tx + x0], [0.0, 1.0, ty + y0]])
+    shifted = cv2.warpAffine(src, mat, (x1 - x0, y1 - y0),
+                             flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+    base = img[y0:y1, x0:x1]
+    ok = np.isfinite(shifted)
+    if ok.sum() < 16:
+        raise ValueError(f"shift {tuple(t)} px leaves no overlap in a {rows}x{cols} image")
+    a = base[ok] - base[ok].mean()
+    b = shifted[ok].astype(np.float64)
+    b -= b.mean()
+    denom = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b / denom) if denom > 0 else 0.0
+
+
+# ---- decision --------------------------------------------------------------------------------
+
+def _ramp(value: float, lo: float, hi: float) -> float:
+    return float(np.clip((value - lo) / (hi - lo), 0.0, 1.0))
+
+
+def _decide(shell: float, prominence: float, s1: float, s2: float) -> tuple[bool, float, str]:
+    """Periodic or not, a confidence in [0, 1] and the limiting reason."""
+    s_min = min(s1, s2)
+    checks = [
+        ("first-shell NCC", shell, _MIN_SHELL_NCC),
+        ("prominence over half-lattice points", prominence, _MIN_PROMINENCE),
+        ("self-similarity under t1 and t2", s_min, _MIN_SELF_SIMILARITY),
+    ]
+    periodic = all(v >= thr for _, v, thr in checks)
+    # each factor is 0.5 at its threshold and saturates at 1 well above it
+    parts = [_ramp(v, 0.5 * thr, 1.5 * thr) if v < 1.5 * thr else
+             0.75 + 0.25 * _ramp(v, 1.5 * thr, 3.0 * thr) for _, v, thr in checks]
+    confidence = float(min(parts))
+    if periodic:
+        confidence = max(confidence, 0.5)
+        why = ""
+    else:
+        confidence = min(confidence, 0.49)
+        failed = [(name, v, thr) for name, v, thr in checks if v < thr]
+        why = "; ".join(f"{name} {v:.2f} < {thr:.2f}" for name, v, thr in failed)
+    return periodic, confidence, why
+
+
+# ---- main entry ------------------------------------------------------------------------------
+
+def _discover(work: np.ndarray, min_period: float, max_period: float,
+              rng: np.random.Generator) -> dict:
+    """Lattice discovery on one working image; vectors in that image's px."""
+    rows, cols = work.shape
+    x = _prepare_for_discovery(work, max_period)
+    search = min(_SEARCH_FRACTION * min(rows, cols), max(rows, cols))
+    max_ly = int(min(search, rows - _MIN_OVERLAP_PX))
+    max_lx = int(min(search, cols - _MIN_OVERLAP_PX))
+    ncc = _ncc_map(x, max_ly, max_lx)
+    points, values = _local_maxima(ncc, max_ly, max_lx, min_period, search)
+    out: dict = {"n_peaks": int(len(points)), "search_radius_px": float(search)}
+    if len(points) < 2:
+        out.update(found=False, why="fewer than two self-correlation peaks")
+        return out
+    hyps, strong_points, n_draw = _propose(points, values, ncc, max_ly, max_lx, min_period,
+                                           max_period, rng)
+    out.update(n_strong_peaks=int(len(strong_points)), n_pairs_drawn=int(n_draw),
+               n_hypotheses=len(hyps))
+    best = _select(hyps)
+    if best is None:
+        out.update(found=False, why="no pair of peaks spans a lattice within the period limits")
+        return out
+    # final refinement over every peak (not only the strong ones) consistent with the winner
+    weight_floor = 0.5 * max(best.shell, 0.0)
+    usable = values >= weight_floor
+    basis, inliers = _fit_basis(points[usable], values[usable], best.basis, search, iterations=6)
+    try:
+        a, b = reduce_basis(basis[:, 0], basis[:, 1])
+    except ValueError:
+        a, b = reduce_basis(best.basis[:, 0], best.basis[:, 1])
+    basis = np.column_stack([a, b])
+    shell, half = _shell_scores(ncc, max_ly, max_lx, basis)
+    ranked = sorted(hyps, key=lambda h: -h.shell)[:5]
+    out.update(
+        found=True, basis=basis, shell=shell, half=half, prominence=shell - half,
+        n_refine_peaks=int(inliers.sum()), x=x,
+        top_hypotheses=[{"t1_px": [round(float(v), 3) for v in h.basis[:, 0]],
+                         "t2_px": [round(float(v), 3) for v in h.basis[:, 1]],
+                         "shell_ncc": round(h.shell, 4), "half_ncc": round(h.half, 4),
+                         "support": h.support} for h in ranked],
+        peaks=[[round(float(p[0]), 3), round(float(p[1]), 3), round(float(v), 4)]
+               for p, v in zip(points[:20], values[:20])],
+    )
+    return out
+
+
+def _refine_full_resolution(image: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Refine t1, t2 on the full image by template matching at growing multiples k t."""
+    rows, cols = image.shape
+    img = image.astype(np.float32)
+    basis = basis.copy()
+    half_short = 0.45 * np.linalg.norm(basis, axis=0).min()
+    templ = int(min(512, 0.3 * min(rows, cols)))
+    for _ in range(5):
+        changed = False
+        for col in range(2):
+            t = basis[:, col]
+            for k in (1, 4, 16, 64, 256):
+                shift = k * t
+                if np.abs(shift).max() > min(rows, cols) - templ - 2 * half_short - 4:
+                    break
+                r = int(max(2, math.ceil(min(half_short, 3.0 + 0.25 * k))))
+                # template around the centre, shifted window at centre + k t
+                cx0 = int(round(cols / 2 - shift[0] / 2 - templ / 2))
+                cy0 = int(round(rows / 2 - shift[1] / 2 - templ / 2))
+                sx, sy = int(round(cx0 + shift[0])), int(round(cy0 + shift[1]))
+                if min(cx0, cy0, sx - r, sy - r) < 0 or max(cx0, sx + r) + templ > cols or max(
+                        cy0, sy + r) + templ > rows:
+                    break
+                tmp = img[cy0:cy0 + templ, cx0:cx0 + templ]
+                win = img[sy - r:sy + r + templ, sx - r:sx + r + templ]
+                score = cv2.matchTemplate(win, tmp, cv2.TM_CCOEFF_NORMED)
+                iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+                if 0 < iy < score.shape[0] - 1 and 0 < ix < score.shape[1] - 1:
+                    z = score[iy - 1:iy + 2, ix - 1:ix + 2].astype(float)
+                    ox = 0.5 * (z[1, 0] - z[1, 2]) / (z[1, 0] - 2 * z[1, 1] + z[1, 2] - 1e-12)
+                    oy = 0.5 * (z[0, 1] - z[2, 1]) / (z[0, 1] - 2 * z[1, 1] + z[2, 1] - 1e-12)
+                    ox, oy = float(np.clip(ox, -1, 1)), float(np.clip(oy, -1, 1))
+                else:
+                    break  # peak at the window edge: the guess is off, do not extrapolate
+                measured = np.array([sx - r + ix + ox - cx0, sy - r + iy + oy - cy0])
+                new_t = measured / k
+                if np.linalg.norm(new_t - t) > 1e-4:
+                    changed = True
+                t = new_t
+            basis[:, col] = t
+        if not changed:
+            break
+    return basis
+
+
+def find_lattice(image: np.ndarray, *, seed: int = 0, min_period_px: float = 2.5,
+                 max_period_fraction: float = 0.4) -> Lattice:
+    """Find the translation lattice of a grey image, or say that there is none.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D grey image, any range (uneven light, JPEG noise and defects are tolerated).
+    seed : int
+        Seed of the random pair sampling (results are deterministic for a given seed).
+    min_period_px : float
+        Shortest lattice vector considered, px (>= 2; below that the image cannot hold it).
+    max_period_fraction : float
+        Longest lattice vector considered, as a fraction of the short image side (<= 0.5: the
+        image must show at least two periods).
+
+    Returns
+    -------
+    Lattice
+        Reduced basis, confidence, a one-line reason and the evidence.
+    """
+    img = _as_grey_float(image)
+    if not (2.0 <= min_period_px):
+        raise ValueError(f"min_period_px must be >= 2, got {min_period_px}")
+    if not (0.0 < max_period_fraction <= 0.5):
+        raise ValueError(f"max_period_fraction must be in (0, 0.5], got {max_period_fraction}")
+    rows, cols = img.shape
+    max_period = max_period_fraction * min(rows, cols) + 1.0  # 1 px slack for 2.5-period images
+    if max_period <= min_period_px:
+        raise ValueError(f"image {rows}x{cols} too small for periods >= {min_period_px} px")
+    if float(img.max() - img.min()) == 0.0:
+        return _not_periodic("the image is constant", {"image_shape": [rows, cols]})
+    rng = np.random.default_rng(seed)
+    evidence: dict = {"image_shape": [rows, cols], "seed": int(seed)}
+
+    if max(rows, cols) <= _WORK_MAX_PX:
+        res = _discover(img, min_period_px, max_period, rng)
+        scale = np.eye(2)
+        evidence["working_image"] = "full"
+        refine_at_full = False
+        sim_img_for = "x"
+    else:
+        # fine lattices: a full-resolution centre crop; coarse ones: a reduced copy
+        ch, cw = min(rows, _WORK_MAX_PX), min(cols, _WORK_MAX_PX)
+        y0, x0 = (rows - ch) // 2, (cols - cw) // 2
+        crop = img[y0:y0 + ch, x0:x0 + cw]
+        crop_max = min(max_period, max_period_fraction * min(ch, cw) + 1.0)
+        res = _discover(crop, min_period_px, crop_max, rng)
+        scale = np.eye(2)
+        evidence["working_image"] = f"centre crop {ch}x{cw} at full resolution"
+        ok_crop = res.get("found") and _decide(res["shell"], res["prominence"], 1.0, 1.0)[0] and (
+            np.linalg.norm(res["basis"], axis=0).max() <= 0.25 * min(ch, cw))
+        if not ok_crop:
+            f = max(rows, cols) / _WORK_MAX_PX
+            small_shape = (max(8, round(cols / f)), max(8, round(rows / f)))
+            small = cv2.resize(img.astype(np.float32), small_shape,
+                               interpolation=cv2.INTER_AREA).astype(np.float64)
+            sx, sy = cols / small_shape[0], rows / small_shape[1]
+            res_small = _discover(small, min_period_px, max_period / max(sx, sy),
+                                  np.random.default_rng(seed))
+            ok_small = res_small.get("found") and _decide(res_small["shell"],
+                                                          res_small["prominence"], 1.0, 1.0)[0]
+            if ok_small or not res.get("found"):
+                res = res_small
+                scale = np.diag([sx, sy])
+                evidence["working_image"] = (f"reduced copy {small_shape[1]}x{small_shape[0]} "
+                                             f"(factor {max(sx, sy):.2f})")
+        refine_at_full = True
+        sim_img_for = "x"
+
+    evidence.update({k: v for k, v in res.items()
+                     if k not in ("basis", "x", "found", "why", "shell", "half", "prominence")})
+    if not res.get("found"):
+        return _not_periodic(res.get("why", "no lattice"), evidence)
+
+    basis = scale @ res["basis"]
+    if refine_at_full:
+        basis = _refine_full_resolution(img, basis)
+        a, b = reduce_basis(basis[:, 0], basis[:, 1])
+        basis = np.column_stack([a, b])
+    # self-similarity on the flattened working image, at the vectors in its own px
+    x = res[sim_img_for]
+    t_work = np.linalg.solve(scale, basis)
+    try:
+        s1 = self_similarity(x, t_work[:, 0])
+        s2 = self_similarity(x, t_work[:, 1])
+    except ValueError:
+        s1 = s2 = 0.0
+    shell, half, prom = res["shell"], res["half"], res["prominence"]
+    periodic, confidence, why = _decide(shell, prom, s1, s2)
+    evidence.update(shell_ncc=round(shell, 4), half_lattice_ncc=round(half, 4),
+                    prominence=round(prom, 4), self_similarity_t1=round(s1, 4),
+                    self_similarity_t2=round(s2, 4),
+                    candidate_t1_px=[round(float(v), 4) for v in basis[:, 0]],
+                    candidate_t2_px=[round(float(v), 4) for v in basis[:, 1]])
+    t1, t2 = basis[:, 0], basis[:, 1]
+    if not periodic:
+        return _not_periodic(
+            f"best lattice candidate t1=({t1[0]:.2f}, {t1[1]:.2f}) t2=({t2[0]:.2f}, {t2[1]:.2f}) px "
+            f"is not credible: {why}", evidence, confidence)
+    angle = math.degrees(math.acos(np.clip(t1 @ t2 / (np.linalg.norm(t1) * np.linalg.norm(t2)),
+                                           -1, 1)))
+    reason = (f"periodic: t1=({t1[0]:.2f}, {t1[1]:.2f}) px, t2=({t2[0]:.2f}, {t2[1]:.2f}) px, "
+              f"angle {angle:.1f} deg; self-similarity {s1:.2f}/{s2:.2f}, first-shell NCC "
+              f"{shell:.2f}, prominence {prom:.2f}, {res['n_refine_peaks']} peaks in consensus")
+    return Lattice(True, t1.copy(), t2.copy(), confidence, reason, evidence)
+
+
+def _not_periodic(why: str, evidence: dict, confidence: float = 0.0) -> Lattice:
+    reason = why if why.startswith("best lattice") else f"not periodic: {why}"
+    if not reason.startswith("not periodic"):
+        reason = "not periodic: " + reason
+    return Lattice(False, np.zeros(2), np.zeros(2), float(confidence), reason, evidence)

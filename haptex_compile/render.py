@@ -1,0 +1,140 @@
+"""Reference renderer: every frame of every contactor computed directly from the height map.
+
+Slow but direct: for each frame and contactor it samples the surface along the contactor's own
+path over a stretch reaching ``margin_ms`` beyond the frame window, at a fine step no longer
+than one pixel, and applies :mod:`haptex_compile.frame_analysis`. Tables are checked against
+it (issue: tables) and ``haptex-play --mode direct`` uses it, so it has no dependency beyond
+numpy (the player loads it lazily).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.frame_analysis import (
+    ANALYSIS_RATE_HZ,
+    AnalysisSettings,
+    across_spacing_mm,
+    footprint_offsets,
+    frame_window,
+    stretch_channel_power,
+)
+from haptex_compile.surface import Surface, sample_height
+
+Trajectory = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+_VELOCITY_DT_S = 1e-3
+_STILL_MM_S = 1e-6
+
+
+@dataclass(frozen=True)
+class Frames:
+    """Per-frame, per-contactor results [n_frames, n_contactors]."""
+
+    a40: np.ndarray
+    a320: np.ndarray
+    intensity_p: np.ndarray
+    intensity_np: np.ndarray
+    out_of_gamut: np.ndarray
+
+
+def contactor_positions(o_u: np.ndarray, o_v: np.ndarray, phi_deg: np.ndarray, contactors_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (u_i, v_i) = o + R(phi) (x_i, y_i) (paper, Sect. 5.2); shapes [..., n_contactors]."""
+    phi = np.deg2rad(np.asarray(phi_deg, dtype=float))[..., None]
+    x, y = contactors_mm[:, 0], contactors_mm[:, 1]
+    c, s = np.cos(phi), np.sin(phi)
+    return np.asarray(o_u, float)[..., None] + c * x - s * y, np.asarray(o_v, float)[..., None] + s * x + c * y
+
+
+def point_intensities(
+    surface: Surface,
+    model: TwoColourModel,
+    settings: AnalysisSettings,
+    path: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    t_centre_s: float,
+) -> tuple[float, float]:
+    """Channel intensities (I_p, I_np) of one contactor following `path` in the frame centred at `t_centre_s`.
+
+    Parameters
+    ----------
+    path : callable
+        ``path(t_s) -> (u_mm, v_mm)`` for an array of times.
+    """
+    t0 = np.array([t_centre_s - _VELOCITY_DT_S, t_centre_s + _VELOCITY_DT_S])
+    pu, pv = path(t0)
+    vel = np.array([pu[1] - pu[0], pv[1] - pv[0]]) / (2 * _VELOCITY_DT_S)
+    speed = float(np.hypot(*vel))
+    if not np.isfinite(speed) or speed < _STILL_MM_S:
+        return 0.0, 0.0
+    px_mm = surface.pixel_size_mm
+    sigma_t = settings.footprint_sigma_mm / speed
+    half_s = settings.window_half_s(speed) + settings.margin_ms / 1000.0
+    decimation = max(1, int(np.ceil(speed / ANALYSIS_RATE_HZ / px_mm)))
+    n_out = 2 * int(np.ceil(half_s * ANALYSIS_RATE_HZ / 2.0)) + 2
+    n_fine = n_out * decimation
+    fine_dt = 1.0 / (ANALYSIS_RATE_HZ * decimation)
+    offsets = (np.arange(n_fine) - (n_fine - 1) / 2.0) * fine_dt
+    window = frame_window(offsets[::decimation], settings.frame_ms, sigma_t)
+    u, v = path(t_centre_s + offsets)
+    normal = np.array([-vel[1], vel[0]]) / speed
+    b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
+    heights = sample_height(surface, u[None, :] + b[:, None] * normal[0], v[None, :] + b[:, None] * normal[1])
+    pp, pnp = stretch_channel_power(heights, fine_dt, decimation, window, model)
+    return float(np.sqrt(np.dot(g, pp))), float(np.sqrt(np.dot(g, pnp)))
+
+
+def render_frames(
+    surface: Surface,
+    model: TwoColourModel,
+    settings: AnalysisSettings,
+    contactors_mm: np.ndarray,
+    frame_centres_s: np.ndarray,
+    trajectory: Trajectory,
+) -> Frames:
+    """Render every frame directly.
+
+    Parameters
+    ----------
+    surface : Surface
+    model : TwoColourModel
+    settings : AnalysisSettings
+    contactors_mm : ndarray [n_contactors, 2]
+        Device coordinates (x_i, y_i) in mm.
+    frame_centres_s : ndarray [n_frames]
+    trajectory : callable
+        ``trajectory(t_s) -> (o_u_mm, o_v_mm, phi_deg)`` evaluated at arbitrary times (the caller
+        interpolates or extrapolates its samples).
+
+    Returns
+    -------
+    Frames
+    """
+    contactors_mm = np.asarray(contactors_mm, dtype=float).reshape(-1, 2)
+    centres = np.asarray(frame_centres_s, dtype=float).ravel()
+    shape = (centres.size, contactors_mm.shape[0])
+    ip = np.zeros(shape)
+    inp = np.zeros(shape)
+    for k, tc in enumerate(centres):
+        for i in range(shape[1]):
+            def path(t: np.ndarray, i: int = i) -> tuple[np.ndarray, np.ndarray]:
+                ou, ov, phi = trajectory(np.asarray(t, dtype=float))
+                pu, pv = contactor_positions(ou, ov, phi, contactors_mm[i : i + 1])
+                return pu[..., 0], pv[..., 0]
+
+            ip[k, i], inp[k, i] = point_intensities(surface, model, settings, path, float(tc))
+    d = model.decompose(ip, inp)
+    return Frames(d.a40, d.a320, ip, inp, d.out_of_gamut)
+
+
+def straight_path(u0_mm: float, v0_mm: float, speed_mm_s: float, direction_deg: float, t_centre_s: float = 0.0):
+    """A constant-velocity path through (u0, v0) at time `t_centre_s`: ``path(t) -> (u, v)``."""
+    d = np.deg2rad(direction_deg)
+    du, dv = speed_mm_s * np.cos(d), speed_mm_s * np.sin(d)
+
+    def path(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, dtype=float) - t_centre_s
+        return u0_mm + du * t, v0_mm + dv * t
+
+    return path

@@ -1,0 +1,269 @@
+"""The default shape-from-shading solver: nonlinear least squares on the height, solved by
+Gauss-Newton with FFT-preconditioned conjugate gradients, coarse to fine.
+
+Energy (heights ``z`` in pixel units, slopes by central differences):
+
+    E(z) = 1/2 sum_i w_i (albedo R(p_i, q_i) - I_i)**2  +  lam/2 sum_i (laplacian z)_i**2
+
+with the exact Lambertian ``R = (lz - p lx - q ly) / sqrt(1 + p² + q²)``. Integrability holds by
+construction (the unknown is the height itself); the small thin-plate term removes the
+checkerboard that central differences cannot see and fills masked pixels. All operators are
+periodic; a non-periodic image is embedded in a larger periodic domain whose margin has no data
+(weight 0), so the margin is filled by the smoothness term alone and the image's edges are free.
+
+Each Gauss-Newton step solves ``(J^T W J + lam L^T L) dz = -grad`` by conjugate gradients
+preconditioned with the same operator for constant coefficients (the pixel average of the
+reflectance's gradient tensor), which is diagonal in Fourier space. The first step from a flat
+start is therefore Pentland's linear shape from shading; later steps use the exact reflectance,
+whose nonlinear part is the only information on slopes perpendicular to the light.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft as sfft
+import cv2
+
+_F = np.float32
+
+
+def _dx(z: np.ndarray) -> np.ndarray:
+    """Periodic central difference along columns (x), pixel units."""
+    out = np.empty_like(z)
+    out[:, 1:-1] = z[:, 2:] - z[:, :-2]
+    out[:, 0] = z[:, 1] - z[:, -1]
+    out[:, -1] = z[:, 0] - z[:, -2]
+    out *= 0.5
+    return out
+
+
+def _dy(z: np.ndarray) -> np.ndarray:
+    """Periodic central difference along rows (y), pixel units."""
+    out = np.empty_like(z)
+    out[1:-1] = z[2:] - z[:-2]
+    out[0] = z[1] - z[-1]
+    out[-1] = z[0] - z[-2]
+    out *= 0.5
+    return out
+
+
+def _lap(z: np.ndarray) -> np.ndarray:
+    """Periodic 5-point Laplacian."""
+    out = -4.0 * z
+    out[1:] += z[:-1]
+    out[0] += z[-1]
+    out[:-1] += z[1:]
+    out[-1] += z[0]
+    out[:, 1:] += z[:, :-1]
+    out[:, 0] += z[:, -1]
+    out[:, :-1] += z[:, 1:]
+    out[:, -1] += z[:, 0]
+    return out
+
+
+def _reflectance(p, q, light):
+    """R(p, q) and its partial derivatives for a unit light (lx, ly, lz)."""
+    lx, ly, lz = (float(c) for c in light)
+    g = 1.0 + p * p + q * q
+    inv = 1.0 / np.sqrt(g)
+    num = lz - p * lx - q * ly
+    r = num * inv
+    inv3 = inv / g
+    rp = -lx * inv - num * p * inv3
+    rq = -ly * inv - num * q * inv3
+    return r, rp, rq
+
+
+class _Problem:
+    """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
+
+    def __init__(self, image, weight, light, lam, workers=2):
+        self.img = image.astype(_F)
+        self.w = weight.astype(_F)
+        self.light = np.asarray(light, dtype=float)
+        self.lam = float(lam)
+        self.workers = workers
+        rows, cols = image.shape
+        wy = 2 * np.pi * np.fft.fftfreq(rows)[:, None]
+        wx = 2 * np.pi * np.fft.rfftfreq(cols)[None, :]
+        self.sx = np.sin(wx).astype(_F)
+        self.sy = np.sin(wy).astype(_F)
+        self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
+        self.shape = (rows, cols)
+
+    def energy(self, z, albedo):
+        r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
+        res = albedo * r - self.img
+        return 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(
+            np.sum(_lap(z) ** 2)
+        )
+
+    def precond(self, rp, rq, albedo):
+        w = self.w
+        wsum = float(w.sum()) or 1.0
+        # Average reflectance-gradient tensor over the pixels, weighted by data weight; the
+        # preconditioner sees the mean data weight, so masked margins are accounted for.
+        wm = wsum / w.size
+        txx = float(np.sum(w * rp * rp)) / wsum * wm
+        txy = float(np.sum(w * rp * rq)) / wsum * wm
+        tyy = float(np.sum(w * rq * rq)) / wsum * wm
+        a2 = albedo * albedo
+        sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
+        sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
+        return (1.0 / sym).astype(_F)
+
+    def apply_pre(self, inv_sym, v):
+        f = sfft.rfft2(v, workers=self.workers)
+        f *= inv_sym
+        return sfft.irfft2(f, s=self.shape, workers=self.workers).astype(_F)
+
+    def gn_step(self, z, albedo, max_cg, tol):
+        """One Gauss-Newton direction by PCG; returns (dz, energy gradient norm)."""
+        p, q = _dx(z), _dy(z)
+        r, rp, rq = _reflectance(p, q, self.light)
+        w = self.w
+        res = albedo * r - self.img
+        ja = albedo * rp
+        jb = albedo * rq
+        wres = w * res
+        # grad = J^T W res + lam L L z ; D^T = -D for periodic central differences.
+        grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap(_lap(z))
+        wa, wb = w * ja, w * jb
+
+        def matvec(v):
+            jv = ja * _dx(v) + jb * _dy(v)
+            return -(_dx(wa * jv) + _dy(wb * jv)) + self.lam * _lap(_lap(v)) + 1e-6 * v
+
+        inv_sym = self.precond(rp, rq, albedo)
+        b = -grad.astype(_F)
+        x = np.zeros_like(b)
+        rr = b.copy()
+        zz = self.apply_pre(inv_sym, rr)
+        d = zz.copy()
+        rz = float(np.vdot(rr, zz))
+        b_norm = float(np.sqrt(np.vdot(b, b))) or 1.0
+        for _ in range(max_cg):
+            ad = matvec(d)
+            dad = float(np.vdot(d, ad))
+            if dad <= 0 or not np.isfinite(dad):
+                break
+            alpha = rz / dad
+            x += alpha * d
+            rr -= alpha * ad
+            if float(np.sqrt(np.vdot(rr, rr))) < tol * b_norm:
+                break
+            zz = self.apply_pre(inv_sym, rr)
+            rz_new = float(np.vdot(rr, zz))
+            d *= rz_new / rz
+            d += zz
+            rz = rz_new
+        return x, grad
+
+    def solve(self, z, albedo, n_gn, max_cg, tol, fit_albedo):
+        e = self.energy(z, albedo)
+        for _ in range(n_gn):
+            dz, grad = self.gn_step(z, albedo, max_cg, tol)
+            step = 1.0
+            accepted = False
+            for _ in range(8):  # backtracking: GN may overshoot where R is far from linear
+                zt = z + step * dz
+                et = self.energy(zt, albedo)
+                if np.isfinite(et) and et <= e:
+                    accepted = True
+                    break
+                step *= 0.5
+            if not accepted:
+                break
+            z, e = zt, et
+            if fit_albedo:
+                albedo, e = self.fit_albedo(z, albedo)
+        return z, albedo
+
+    def fit_albedo(self, z, albedo):
+        r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
+        w = self.w
+        den = float(np.sum(w * r * r))
+        if den > 0:
+            a = float(np.sum(w * r * self.img)) / den
+            if np.isfinite(a) and a > 0:
+                albedo = min(max(a, 1e-3), 1e3)
+        return albedo, self.energy(z, albedo)
+
+
+def _downsample(img, w):
+    """Halve an image and its weights (area average over weighted pixels)."""
+    rows, cols = img.shape
+    size = (max(cols // 2, 1), max(rows // 2, 1))
+    wi = cv2.resize((img * w).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    ww = cv2.resize(w.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    out = np.where(ww > 1e-6, wi / np.maximum(ww, 1e-6), 0.0)
+    return out.astype(_F), ww.astype(_F)
+
+
+def _upsample(z, shape):
+    """Upsample a height in pixel units to `shape` (values scale with the pixel ratio)."""
+    factor = shape[1] / z.shape[1]
+    big = cv2.resize(z.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+    return (big * factor).astype(_F)
+
+
+def solve_variational(
+    image: np.ndarray,
+    weight: np.ndarray,
+    light_vec: np.ndarray,
+    albedo: float,
+    *,
+    lam: float = 2e-3,
+    fit_albedo: bool = True,
+    z0: np.ndarray | None = None,
+    n_gn: int = 6,
+    max_cg: int = 30,
+    tol: float = 1e-3,
+    min_size: int = 24,
+    fine_gn: int = 3,
+    workers: int = 2,
+    lam_growth: float = 1.0,
+) -> tuple[np.ndarray, float]:
+    """Minimise the shading energy coarse to fine on a periodic domain.
+
+    Parameters
+    ----------
+    image, weight : ndarray
+        Image in [0, 1] and data weights (0 = no information) on the periodic domain.
+    light_vec : ndarray
+        Unit light vector (lx, ly, lz).
+    albedo : float
+        Initial albedo.
+    lam : float
+        Thin-plate weight (pixel units).
+    fit_albedo : bool
+        Refit the albedo by least squares after each accepted step.
+    z0 : ndarray, optional
+        Starting height (pixel units); flat by default.
+    n_gn, fine_gn : int
+        Gauss-Newton steps per coarse level and at full resolution.
+    max_cg, tol : int, float
+        Conjugate-gradient limits per step.
+    min_size : int
+        Coarsest level's smaller side.
+
+    Returns
+    -------
+    z : ndarray
+        Height in pixel units (float32), mean 0.
+    albedo : float
+    """
+    pyramid = [(image.astype(_F), weight.astype(_F))]
+    while min(pyramid[-1][0].shape) // 2 >= min_size:
+        pyramid.append(_downsample(*pyramid[-1]))
+    z = None
+    if z0 is not None:
+        zf = z0.astype(_F)
+        z = cv2.resize(zf, pyramid[-1][0].shape[::-1], interpolation=cv2.INTER_AREA)
+        z = z * (pyramid[-1][0].shape[1] / zf.shape[1])
+    for level in range(len(pyramid) - 1, -1, -1):
+        img, w = pyramid[level]
+        z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
+        prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers)
+        steps = fine_gn if level == 0 else n_gn
+        z, albedo = prob.solve(z, albedo, steps, max_cg, tol, fit_albedo)
+    return z - z.mean(), albedo
