@@ -4,8 +4,7 @@ The model (paper, Sect. 5.4, made exact):
 
 * Each channel c in {p, np} weighs a component of frequency f and amplitude A (µm) by
   ``W_c(f) = B(f) / T_c(f)`` where T_c is the channel threshold and B the *band*: a smooth
-  second-order roll-off below ``low_hz`` (10 Hz: slower undulations are felt as indentation,
-  not vibration) and a raised-cosine taper from ``high_pass_hz`` (600 Hz) to zero at
+  roll-off below ``low_hz`` (10 Hz: slower undulations are felt as indentation, not vibration) and a raised-cosine taper from ``high_pass_hz`` (600 Hz) to zero at
   ``high_stop_hz`` (800 Hz), the top of what the analysis samples without aliasing.
 * Within a channel, components add in power: the channel intensity of a line spectrum is
   ``I_c = sqrt(sum_f (A_f W_c(f))^2)``, which is what the time-domain analysis (RMS envelope of
@@ -42,10 +41,14 @@ class Band:
             raise ValueError("band must satisfy 0 < low_hz < high_pass_hz < high_stop_hz")
 
     def weight(self, freq_hz: np.ndarray | float) -> np.ndarray:
-        """B(f) in [0, 1]: ``x^2/sqrt(1+x^4)`` with x = f/low_hz, times the high-frequency taper."""
+        """B(f) in [0, 1]: ``1 - exp(-(f/low_hz)^2)`` times the high-frequency taper.
+
+        The low roll-off vanishes like f^2 at 0 Hz (a linear trend gives nothing) and is Gaussian,
+        so its impulse response is short (a few tens of ms at 10 Hz): finite analysis stretches
+        and whole-line filtering agree.
+        """
         f = np.abs(np.asarray(freq_hz, dtype=float))
-        x2 = (f / self.low_hz) ** 2
-        low = x2 / np.sqrt(1.0 + x2 * x2)
+        low = -np.expm1(-((f / self.low_hz) ** 2))
         t = np.clip((f - self.high_pass_hz) / (self.high_stop_hz - self.high_pass_hz), 0.0, 1.0)
         high = 0.5 * (1.0 + np.cos(np.pi * t))
         return low * high

@@ -16,7 +16,7 @@ For a contactor moving along a path p(t) over the surface, with frame centre t_c
    :meth:`~haptex_compile.colours.TwoColourModel.decompose` turns (I_p, I_np) into (a40, a320).
 
 The reference renderer evaluates this on finite stretches (``margin_ms`` beyond the window on
-each side, linear trend removed, tapered in the margins); the tables evaluate the same filter
+each side, mean removed, flat for half the margin and tapered in the outer half); the tables evaluate the same filter
 along whole lines. Both sample heights through :func:`haptex_compile.surface.sample_height`.
 """
 from __future__ import annotations
@@ -101,6 +101,19 @@ def footprint_offsets(sigma_mm: float, spacing_mm: float) -> tuple[np.ndarray, n
     return b, g / g.sum()
 
 
+def resolution_weight(k_cyc_per_mm: np.ndarray, pixel_size_mm: float) -> np.ndarray:
+    """Weight of spatial frequencies the height map resolves: 1 up to 0.6 of its Nyquist
+    frequency, raised-cosine to 0 at 0.9 of it.
+
+    Bilinear sampling adds content above the map's Nyquist frequency (its corners) that is not
+    in the surface; cutting it keeps fast strokes from feeling the pixel grid, and the tables
+    and the reference renderer see the same band however their samples fall.
+    """
+    k_nyq = 0.5 / pixel_size_mm
+    t = np.clip((np.abs(np.asarray(k_cyc_per_mm, dtype=float)) / k_nyq - 0.6) / 0.3, 0.0, 1.0)
+    return 0.5 * (1.0 + np.cos(np.pi * t))
+
+
 def across_spacing_mm(sigma_mm: float, pixel_size_mm: float, speed_mm_s: float, model: TwoColourModel) -> float:
     """Spacing of the parallel paths that sample the footprint across the motion.
 
@@ -120,6 +133,8 @@ def stretch_channel_power(
     decimation: int,
     window_weights: np.ndarray,
     model: TwoColourModel,
+    speed_mm_s: float,
+    pixel_size_mm: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean channel power of finite stretches (reference renderer's inner step).
 
@@ -134,6 +149,8 @@ def stretch_channel_power(
     window_weights : ndarray [n_fine // decimation]
         Frame-window weights at the envelope's sample times (zero in the margins).
     model : TwoColourModel
+    speed_mm_s, pixel_size_mm : float
+        Speed of the path and pixel size of the map, for :func:`resolution_weight`.
 
     Returns
     -------
@@ -148,26 +165,29 @@ def stretch_channel_power(
     # Taper: flat where the window is, raised cosine in the margins (so no edge step reaches it).
     support = np.nonzero(window_weights > 0)[0]
     j = np.arange(n_fine) / decimation
-    lo, hi = support[0] - 0.5, support[-1] + 0.5
+    # The taper stays flat for half of each margin beyond the window, so the weighting filter's
+    # response inside the window hardly reaches the tapered part.
+    lo = 0.5 * (support[0] - 0.5)
+    hi = support[-1] + 0.5 + 0.5 * (n_out - 0.5 - support[-1] - 0.5)
     taper = np.ones(n_fine)
     left = j < lo
     right = j > hi
     taper[left] = 0.5 * (1 - np.cos(np.pi * (j[left] + 0.5) / (lo + 0.5)))
     taper[right] = 0.5 * (1 - np.cos(np.pi * (n_out - 0.5 - j[right]) / (n_out - 0.5 - hi)))
-    # Remove the mean and linear trend: slow trends carry no vibration (and must not leak through
-    # the taper). The fit is weighted by a smooth bump (cos^4 over the stretch) whose transform
-    # decays fast, so in-band tones project almost nothing onto the trend.
+    # Remove the mean (a smooth cos^4-weighted one). A linear trend is left alone on purpose:
+    # the weighting ignores it where the taper is flat, while subtracting a fitted trend would
+    # change the tapered margins, which the analytic signal's long Hilbert tail carries into
+    # the window.
     t = np.arange(n_fine) - (n_fine - 1) / 2.0
     fit_w = np.cos(np.pi * t / n_fine) ** 4
-    sw = fit_w.sum()
-    mean_h = (h * fit_w).sum(axis=-1, keepdims=True) / sw
-    tc = t - (t * fit_w).sum() / sw
-    slope = (h * fit_w * tc).sum(axis=-1, keepdims=True) / (fit_w * tc * tc).sum()
-    x = (h - mean_h - slope * tc) * taper
+    mean_h = (h * fit_w).sum(axis=-1, keepdims=True) / fit_w.sum()
+    x = (h - mean_h) * taper
     spec = np.fft.rfft(x, axis=-1)
     freqs = np.fft.rfftfreq(n_fine, d=fine_dt_s)[: n_out // 2]
     spec = spec[..., : n_out // 2]
     wp, wnp = model.weights(freqs)
+    res = resolution_weight(freqs / speed_mm_s, pixel_size_mm)
+    wp, wnp = wp * res, wnp * res
     scale = 2.0 / decimation  # analytic signal (x2 for positive bins), n_fine -> n_out inverse FFT
     full = np.zeros(h.shape[:-1] + (n_out,), dtype=complex)
     wsum = window_weights.sum()

@@ -91,6 +91,7 @@ class _Header:
     resolutions: list[tuple[float, float, str, str]] = field(default_factory=list)
     sample_format: int = 1  # TIFF SampleFormat: 1 uint, 2 int, 3 float
     bits: int = 8
+    colour_type: int = 0  # PNG colour type
     tags: dict[int, np.ndarray] = field(default_factory=dict)  # TIFF tags for the checks
 
 
@@ -212,7 +213,8 @@ def _tiff_resolution(tags: dict[int, np.ndarray], source: str) -> list[tuple[flo
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
-_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}  # channels once decoded
+_PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}   # samples per stored pixel
 
 
 def _png_header(data: bytes) -> _Header:
@@ -224,13 +226,13 @@ def _png_header(data: bytes) -> _Header:
         raise _Bad("corrupt PNG header (IHDR)")
     if colour not in _PNG_DEPTHS or depth not in _PNG_DEPTHS[colour] or comp or filt or interlace > 1:
         raise _Bad(f"corrupt PNG header (colour type {colour}, bit depth {depth})")
-    return _Header("PNG", width, height, _PNG_CHANNELS[colour], bits=depth)
+    return _Header("PNG", width, height, _PNG_CHANNELS[colour], bits=depth, colour_type=colour)
 
 
 def _png_check(data: bytes, header: _Header) -> None:
     """Walk all chunks: checksums of critical chunks, an IDAT, and IEND must be present."""
     view = memoryview(data)
-    n, pos, seen_idat = len(data), 8, False
+    n, pos, idat_bytes = len(data), 8, 0
     has_trns = False
     while True:
         if pos + 12 > n:
@@ -248,7 +250,7 @@ def _png_check(data: bytes, header: _Header) -> None:
             raise _Bad(f"corrupt PNG: checksum error in {ctype.decode('ascii')} chunk")
         if crc_ok:
             if ctype == b"IDAT":
-                seen_idat = True
+                idat_bytes += length
             elif ctype == b"tRNS":
                 has_trns = True
             elif ctype == b"pHYs" and length == 9:
@@ -258,8 +260,14 @@ def _png_check(data: bytes, header: _Header) -> None:
             elif ctype == b"IEND":
                 break
         pos = end
-    if not seen_idat:
+    if not idat_bytes:
         raise _Bad("corrupt PNG: no image data (IDAT)")
+    # Deflate expands at most 1032-fold: fewer compressed bytes than that cannot hold the
+    # image, so refuse before the decoder allocates it (a cheap decompression-bomb guard).
+    row_bytes = 1 + (header.width * header.bits * _PNG_SAMPLES[header.colour_type] + 7) // 8
+    if idat_bytes * 1032 < row_bytes * header.height:
+        raise _Bad(f"corrupt PNG: {idat_bytes} bytes of image data cannot hold "
+                   f"{header.width} x {header.height} pixels")
     if has_trns and header.channels in (1, 3):
         header.channels += 1
 

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 __all__ = [
     "Lattice",
@@ -50,7 +51,7 @@ _N_NEAREST = 30              # hypotheses are drawn among the 30 nearest strong 
 _N_STRONGEST = 10            # ... plus the 10 strongest
 _N_PAIRS = 300               # random pairs drawn per run (all pairs when there are fewer)
 _STRONG_FRACTION = 0.3       # a strong peak has NCC >= 0.3 x the highest peak
-_ELIGIBLE_FRACTION = 0.8     # proposals within 80 % of the best shell score compete on cell area
+_ELIGIBLE_FRACTION = 0.9     # proposals within 90 % of the best shell score compete on cell area
 _MIN_ANGLE_SIN = 0.2         # pairs closer than ~11.5 degrees to parallel propose nothing
 # periodic decision (see _decide): all must hold
 _MIN_SHELL_NCC = 0.2         # weakest NCC over t1, t2, t1 +- t2
@@ -219,6 +220,10 @@ def _prepare_for_discovery(image: np.ndarray, max_period_px: float) -> np.ndarra
     x = x - _gaussian_blur(x, sigma)
     energy = _gaussian_blur(x * x, sigma)
     x = x / np.sqrt(energy + 1e-6 * max(float(energy.mean()), 1e-300))
+    # clip what is left of defects (slub edges, specular spots): 3 robust standard deviations
+    limit = 3.0 * 1.4826 * float(np.median(np.abs(x - np.median(x))))
+    if limit > 0:
+        x = np.clip(x, -limit, limit)
     return x - x.mean()
 
 
@@ -265,12 +270,60 @@ def _ncc_map(x: np.ndarray, max_lag_y: int, max_lag_x: int) -> np.ndarray:
     return np.clip(cov / np.sqrt(var), -1.0, 1.0)
 
 
-def _local_maxima(ncc: np.ndarray, cy: int, cx: int, min_r: float, max_r: float
+class _NccField:
+    """The NCC map with a cubic-spline interpolant (bilinear under-reads the sharp peaks of
+    short periods by up to half their height; the cubic spline by a few percent)."""
+
+    def __init__(self, ncc: np.ndarray, cy: int, cx: int):
+        self.ncc, self.cy, self.cx = ncc, cy, cx
+        self.coef = ndimage.spline_filter(ncc, order=3, mode="mirror")
+
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """NCC at sub-pixel lags (x, y); NaN outside the map."""
+        points = np.asarray(points, float).reshape(-1, 2)
+        coords = np.vstack([points[:, 1] + self.cy, points[:, 0] + self.cx])
+        out = ndimage.map_coordinates(self.coef, coords, order=3, mode="mirror",
+                                      prefilter=False)
+        inside = ((coords[0] >= 0) & (coords[0] <= self.ncc.shape[0] - 1) &
+                  (coords[1] >= 0) & (coords[1] <= self.ncc.shape[1] - 1))
+        out[~inside] = np.nan
+        return out
+
+
+def _quadratic_vertex(z: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex of the quadratic through 3x3 samples z[n, 3, 3] spaced `step` apart.
+
+    Returns offsets (x, y), clipped to +-step, and the quadratic's value there."""
+    gx = (z[:, 1, 2] - z[:, 1, 0]) / 2
+    gy = (z[:, 2, 1] - z[:, 0, 1]) / 2
+    hxx = z[:, 1, 2] - 2 * z[:, 1, 1] + z[:, 1, 0]
+    hyy = z[:, 2, 1] - 2 * z[:, 1, 1] + z[:, 0, 1]
+    hxy = (z[:, 2, 2] - z[:, 2, 0] - z[:, 0, 2] + z[:, 0, 0]) / 4
+    det = hxx * hyy - hxy * hxy
+    good = (det > 1e-12) & (hxx < 0)
+    safe = np.where(good, det, 1.0)
+    # fall back to separate parabolas where the 2-D fit is not a maximum
+    ox1 = np.where(hxx < 0, -gx / np.where(hxx < 0, hxx, -1.0), 0.0)
+    oy1 = np.where(hyy < 0, -gy / np.where(hyy < 0, hyy, -1.0), 0.0)
+    ox = np.where(good, -(hyy * gx - hxy * gy) / safe, ox1)
+    oy = np.where(good, -(hxx * gy - hxy * gx) / safe, oy1)
+    ox, oy = np.clip(ox, -1, 1), np.clip(oy, -1, 1)
+    value = z[:, 1, 1] + 0.5 * (gx * ox + gy * oy)
+    return ox * step, oy * step, value
+
+
+_GRID3 = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+
+
+def _local_maxima(field: _NccField, min_r: float, max_r: float
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel local maxima of the NCC map in the upper half plane of lags.
 
-    Returns positions (n, 2) as (x, y) lags and their interpolated NCC values, sorted by length.
+    Integer maxima, a quadratic fit on the 3x3 integer neighbourhood, then a second quadratic
+    fit on the spline sampled +-0.5 px around it. Returns positions (n, 2) as (x, y) lags and
+    their spline NCC values, sorted by length.
     """
+    ncc, cy, cx = field.ncc, field.cy, field.cx
     peak = ncc == ndimage.maximum_filter(ncc, size=3, mode="nearest")
     peak[[0, -1], :] = False
     peak[:, [0, -1]] = False
@@ -283,32 +336,19 @@ def _local_maxima(ncc: np.ndarray, cy: int, cx: int, min_r: float, max_r: float
     if iy.size == 0:
         return np.zeros((0, 2)), np.zeros(0)
     z = np.stack([ncc[iy + dy, ix + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
-    z = z.reshape(-1, 3, 3)
-    gx = (z[:, 1, 2] - z[:, 1, 0]) / 2
-    gy = (z[:, 2, 1] - z[:, 0, 1]) / 2
-    hxx = z[:, 1, 2] - 2 * z[:, 1, 1] + z[:, 1, 0]
-    hyy = z[:, 2, 1] - 2 * z[:, 1, 1] + z[:, 0, 1]
-    hxy = (z[:, 2, 2] - z[:, 2, 0] - z[:, 0, 2] + z[:, 0, 0]) / 4
-    det = hxx * hyy - hxy * hxy
-    good = (det > 1e-12) & (hxx < 0)
-    safe = np.where(good, det, 1.0)
-    ox = np.where(good, -(hyy * gx - hxy * gy) / safe, np.where(hxx < 0, -gx / np.where(
-        hxx < 0, hxx, -1.0), 0.0))
-    oy = np.where(good, -(hxx * gy - hxy * gx) / safe, np.where(hyy < 0, -gy / np.where(
-        hyy < 0, hyy, -1.0), 0.0))
-    ox, oy = np.clip(ox, -1, 1), np.clip(oy, -1, 1)
-    value = z[:, 1, 1] + 0.5 * (gx * ox + gy * oy)
+    ox, oy, _ = _quadratic_vertex(z.reshape(-1, 3, 3), 1.0)
     pos = np.column_stack([ix - cx + ox, iy - cy + oy])
+    around = pos[:, None, :] + 0.5 * _GRID3[None, :, ::-1]
+    z = field.at(around.reshape(-1, 2)).reshape(-1, 3, 3)
+    z = np.where(np.isfinite(z), z, -1.0)
+    ox, oy, _ = _quadratic_vertex(z, 0.5)
+    pos = pos + np.column_stack([ox, oy])
+    value = field.at(pos)
+    value = np.where(np.isfinite(value), value, ncc[iy, ix])
     r = np.hypot(pos[:, 0], pos[:, 1])
     keep = r >= min_r
     order = np.argsort(r[keep], kind="stable")
     return pos[keep][order], value[keep][order]
-
-
-def _sample(ncc: np.ndarray, cy: int, cx: int, points: np.ndarray) -> np.ndarray:
-    """Bilinear NCC at sub-pixel lags (x, y); NaN outside the map."""
-    coords = np.vstack([points[:, 1] + cy, points[:, 0] + cx])
-    return ndimage.map_coordinates(ncc, coords, order=1, mode="constant", cval=np.nan)
 
 
 # ---- consensus -------------------------------------------------------------------------------
@@ -349,27 +389,48 @@ def _fit_basis(points: np.ndarray, weights: np.ndarray, basis: np.ndarray, radiu
 class _Hypothesis:
     basis: np.ndarray          # columns t1, t2 (reduced)
     shell: float               # weakest NCC over t1, t2, t1 + t2, t1 - t2
-    half: float                # strongest NCC over the half-lattice points
+    half: float                # mean NCC over the half-lattice points
     support: int               # strong peaks that are lattice points
     area: float
 
 
-def _shell_scores(ncc: np.ndarray, cy: int, cx: int, basis: np.ndarray) -> tuple[float, float]:
+class _PeakIndex:
+    """Nearest-peak look-up over the detected NCC maxima (both half planes)."""
+
+    def __init__(self, points: np.ndarray, values: np.ndarray):
+        self.points = np.vstack([points, -points]) if len(points) else np.zeros((0, 2))
+        self.values = np.concatenate([values, values]) if len(values) else np.zeros(0)
+        self.tree = cKDTree(self.points) if len(self.points) else None
+
+    def value_at(self, field: _NccField, query: np.ndarray, tol: float) -> np.ndarray:
+        """NCC at sub-pixel lags: the larger of the spline value there and the value of a peak
+        within `tol` (a basis off by a fraction of a pixel must not miss a sharp peak)."""
+        value = field.at(query)
+        if self.tree is not None:
+            dist, idx = self.tree.query(query, distance_upper_bound=tol)
+            hit = np.isfinite(dist)
+            value[hit] = np.fmax(value[hit], self.values[idx[hit]])
+        return value
+
+
+def _shell_scores(field: _NccField, basis: np.ndarray, peaks: _PeakIndex
+                  ) -> tuple[float, float]:
+    """Weakest NCC over the first shell and mean NCC over the half-lattice points."""
     t1, t2 = basis[:, 0], basis[:, 1]
     shell = np.array([t1, t2, t1 + t2, t1 - t2])
-    half = 0.5 * shell
-    vs = _sample(ncc, cy, cx, shell)
-    vh = _sample(ncc, cy, cx, half)
+    tol = _tolerance_px(basis)
+    vs = peaks.value_at(field, shell, tol)
+    vh = peaks.value_at(field, 0.5 * shell, tol)
     vs = vs[np.isfinite(vs)]
     vh = vh[np.isfinite(vh)]
     if vs.size < 3:
         return -1.0, 1.0
-    return float(vs.min()), float(vh.max()) if vh.size else 0.0
+    return float(vs.min()), float(vh.mean()) if vh.size else 0.0
 
 
-def _propose(points: np.ndarray, values: np.ndarray, ncc: np.ndarray, cy: int, cx: int,
-             min_period: float, max_period: float, rng: np.random.Generator
-             ) -> tuple[list[_Hypothesis], np.ndarray, int]:
+def _propose(points: np.ndarray, values: np.ndarray, field: _NccField,
+             min_period: float, max_period: float, rng: np.random.Generator,
+             peaks: _PeakIndex) -> tuple[list[_Hypothesis], np.ndarray, int]:
     """RANSAC-like proposals from random pairs of strong peaks."""
     strong = values >= max(_STRONG_FRACTION * values.max(), 0.02)
     sp, sv = points[strong], values[strong]
@@ -384,7 +445,8 @@ def _propose(points: np.ndarray, values: np.ndarray, ncc: np.ndarray, cy: int, c
     prob = prob / prob.sum()
     n_draw = min(_N_PAIRS, len(i))
     picks = rng.choice(len(i), size=n_draw, replace=False, p=prob)
-    radius = float(np.linalg.norm(sp, axis=1).max()) if len(sp) else 0.0
+    fit_p, fit_v = sp[:150], sv[:150]  # sorted by length: the nearest strong peaks
+    radius = float(np.linalg.norm(fit_p, axis=1).max()) if len(fit_p) else 0.0
     for k in picks:
         p, q = sp[pool[i[k]]], sp[pool[j[k]]]
         cross = abs(p[0] * q[1] - p[1] * q[0])
@@ -395,7 +457,7 @@ def _propose(points: np.ndarray, values: np.ndarray, ncc: np.ndarray, cy: int, c
         key = tuple(np.round(basis.ravel() / 0.75).astype(int))
         if key in hyps:
             continue
-        basis, inl = _fit_basis(sp, sv, basis, radius)
+        basis, inl = _fit_basis(fit_p, fit_v, basis, radius, iterations=3)
         try:
             a, b = reduce_basis(basis[:, 0], basis[:, 1])
         except ValueError:
@@ -405,7 +467,7 @@ def _propose(points: np.ndarray, values: np.ndarray, ncc: np.ndarray, cy: int, c
         if lengths.min() < min_period or lengths.max() > max_period:
             hyps[key] = _Hypothesis(basis, -1.0, 1.0, 0, 0.0)
             continue
-        shell, half = _shell_scores(ncc, cy, cx, basis)
+        shell, half = _shell_scores(field, basis, peaks)
         hyps[key] = _Hypothesis(basis, shell, half, int(inl.sum()),
                                 float(abs(np.linalg.det(basis))))
     return [h for h in hyps.values() if h.area > 0], sp, n_draw
@@ -419,7 +481,7 @@ def _select(hyps: list[_Hypothesis]) -> _Hypothesis | None:
         return max(hyps, key=lambda h: h.shell)
     eligible = [h for h in hyps if h.shell >= _ELIGIBLE_FRACTION * best]
     # smallest cell wins (a super-lattice is as self-similar but coarser); ties by score
-    return min(eligible, key=lambda h: (round(h.area / (0.02 * h.area + 1e-9)), -h.shell))
+    return min(eligible, key=lambda h: (round(math.log(h.area) / math.log(1.05)), -h.shell))
 
 
 # ---- self-similarity -------------------------------------------------------------------------
@@ -512,13 +574,15 @@ def _discover(work: np.ndarray, min_period: float, max_period: float,
     max_ly = int(min(search, rows - _MIN_OVERLAP_PX))
     max_lx = int(min(search, cols - _MIN_OVERLAP_PX))
     ncc = _ncc_map(x, max_ly, max_lx)
-    points, values = _local_maxima(ncc, max_ly, max_lx, min_period, search)
+    field_ = _NccField(ncc, max_ly, max_lx)
+    points, values = _local_maxima(field_, min_period, search)
     out: dict = {"n_peaks": int(len(points)), "search_radius_px": float(search)}
     if len(points) < 2:
         out.update(found=False, why="fewer than two self-correlation peaks")
         return out
-    hyps, strong_points, n_draw = _propose(points, values, ncc, max_ly, max_lx, min_period,
-                                           max_period, rng)
+    peaks = _PeakIndex(points, values)
+    hyps, strong_points, n_draw = _propose(points, values, field_, min_period, max_period, rng,
+                                           peaks)
     out.update(n_strong_peaks=int(len(strong_points)), n_pairs_drawn=int(n_draw),
                n_hypotheses=len(hyps))
     best = _select(hyps)
@@ -534,7 +598,7 @@ def _discover(work: np.ndarray, min_period: float, max_period: float,
     except ValueError:
         a, b = reduce_basis(best.basis[:, 0], best.basis[:, 1])
     basis = np.column_stack([a, b])
-    shell, half = _shell_scores(ncc, max_ly, max_lx, basis)
+    shell, half = _shell_scores(field_, basis, peaks)
     ranked = sorted(hyps, key=lambda h: -h.shell)[:5]
     out.update(
         found=True, basis=basis, shell=shell, half=half, prominence=shell - half,

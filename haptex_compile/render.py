@@ -81,7 +81,7 @@ def point_intensities(
     normal = np.array([-vel[1], vel[0]]) / speed
     b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
     heights = sample_height(surface, u[None, :] + b[:, None] * normal[0], v[None, :] + b[:, None] * normal[1])
-    pp, pnp = stretch_channel_power(heights, fine_dt, decimation, window, model)
+    pp, pnp = stretch_channel_power(heights, fine_dt, decimation, window, model, speed, px_mm)
     return float(np.sqrt(np.dot(g, pp))), float(np.sqrt(np.dot(g, pnp)))
 
 

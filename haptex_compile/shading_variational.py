@@ -90,9 +90,12 @@ class _Problem:
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
         self.shape = (rows, cols)
 
+    offset = 0.0
+    affine = False
+
     def energy(self, z, albedo):
         r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
-        res = albedo * r - self.img
+        res = albedo * r + self.offset - self.img
         return 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(
             np.sum(_lap(z) ** 2)
         )
@@ -121,7 +124,7 @@ class _Problem:
         p, q = _dx(z), _dy(z)
         r, rp, rq = _reflectance(p, q, self.light)
         w = self.w
-        res = albedo * r - self.img
+        res = albedo * r + self.offset - self.img
         ja = albedo * rp
         jb = albedo * rq
         wres = w * res
@@ -181,6 +184,16 @@ class _Problem:
     def fit_albedo(self, z, albedo):
         r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
         w = self.w
+        if self.affine:
+            sw, sr, sr2 = float(w.sum()), float(np.sum(w * r)), float(np.sum(w * r * r))
+            si, sri = float(np.sum(w * self.img)), float(np.sum(w * r * self.img))
+            det = sw * sr2 - sr * sr
+            if det > 1e-12 * sw * sw:
+                a = (sw * sri - sr * si) / det
+                c = (si - a * sr) / sw
+                if np.isfinite(a) and a > 0:
+                    albedo, self.offset = a, c
+            return albedo, self.energy(z, albedo)
         den = float(np.sum(w * r * r))
         if den > 0:
             a = float(np.sum(w * r * self.img)) / den
@@ -222,6 +235,7 @@ def solve_variational(
     fine_gn: int = 3,
     workers: int = 2,
     lam_growth: float = 1.0,
+    affine: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -264,6 +278,9 @@ def solve_variational(
         img, w = pyramid[level]
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
         prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers)
+        prob.affine = affine
+        prob.offset = offset if level < len(pyramid) - 1 else 0.0
         steps = fine_gn if level == 0 else n_gn
         z, albedo = prob.solve(z, albedo, steps, max_cg, tol, fit_albedo)
+        offset = prob.offset
     return z - z.mean(), albedo

@@ -1,7 +1,14 @@
-"""A rigid surface: height map in µm on a pixel grid, and how to sample it anywhere.
+"""A rigid surface: height map in µm on a pixel grid, and the continuous surface it stands for.
 
 Coordinates: sample (row r, column c) of ``height_um`` sits at ``(u, v) = (c, r) * pixel_size_mm``
-(u along columns, v along rows, millimetres). Between samples heights are bilinear.
+(u along columns, v along rows, millimetres).
+
+Between samples the surface is the cubic B-spline interpolant of the map after removing detail
+finer than about 3 pixels (an isotropic raised-cosine low-pass from 0.5 to 0.75 of the Nyquist
+frequency): neither the map nor any interpolant renders such detail faithfully, and bilinear
+interpolation would make the vibration depend on where a path falls between pixel rows. The
+spline coefficients are computed once (numpy FFT) and both the tables and the reference renderer
+evaluate exactly this surface.
 
 Outside the map:
 
@@ -11,9 +18,6 @@ Outside the map:
   shape tiles it seamlessly);
 * a *non-periodic* surface is mirrored about its edge samples (even reflection, period
   ``2 (n - 1)`` samples): no step at the edge, so crossing it adds no spurious vibration.
-
-Both the tables and the reference renderer sample through :func:`sample_height`, so they see
-exactly the same surface.
 """
 from __future__ import annotations
 
@@ -93,14 +97,79 @@ def periodic_surface_from_tile(height_um: np.ndarray, pixel_size_um: float) -> S
                    np.array([nx, 0.0]), np.array([0.0, ny]), np.zeros(2))
 
 
-def _mirror_index(i: np.ndarray, n: int) -> np.ndarray:
+RESOLUTION_PASS = 0.5  # fraction of the Nyquist frequency kept whole
+RESOLUTION_STOP = 0.75  # fraction above which nothing is kept
+
+
+def _wraps(surface: "Surface") -> bool:
+    """Whether indices wrap around the array (lattice equal to the array's shape)."""
+    if not surface.periodic:
+        return False
+    ny, nx = surface.shape
+    basis = np.column_stack([surface.t1_px, surface.t2_px]).astype(float)
+    return bool(np.allclose(np.abs(np.linalg.det(basis)), nx * ny) and np.allclose(basis % np.array([[nx], [ny]]), 0))
+
+
+def spline_coefficients(surface: "Surface") -> np.ndarray:
+    """Cubic B-spline coefficients of the resolution-limited map (cached on the surface)."""
+    cached = surface.__dict__.get("_coefficients")
+    if cached is not None:
+        return cached
+    h = np.asarray(surface.height_um, dtype=float)
+    ny, nx = h.shape
+    wrap = _wraps(surface)
+    if wrap:
+        ext = h
+    else:  # whole-sample symmetric extension: period 2(n - 1), no step anywhere
+        ext = np.concatenate([h, h[-2:0:-1]], axis=0) if ny > 2 else np.concatenate([h, h[:0:-1]], axis=0)
+        ext = np.concatenate([ext, ext[:, -2:0:-1]], axis=1) if nx > 2 else np.concatenate([ext, ext[:, :0:-1]], axis=1)
+    my, mx = ext.shape
+    ky = np.fft.fftfreq(my)[:, None]
+    kx = np.fft.rfftfreq(mx)[None, :]
+    rho = np.sqrt(kx**2 + ky**2) / 0.5
+    t = np.clip((rho - RESOLUTION_PASS) / (RESOLUTION_STOP - RESOLUTION_PASS), 0.0, 1.0)
+    lowpass = 0.5 * (1.0 + np.cos(np.pi * t))
+    bspline = ((4.0 + 2.0 * np.cos(2 * np.pi * ky)) / 6.0) * ((4.0 + 2.0 * np.cos(2 * np.pi * kx)) / 6.0)
+    coeffs = np.fft.irfft2(np.fft.rfft2(ext) * lowpass / bspline, s=ext.shape)[:ny, :nx]
+    object.__setattr__(surface, "_coefficients", coeffs)
+    return coeffs
+
+
+def pixel_coordinates(surface: "Surface", u_mm: np.ndarray, v_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (x, y) of points, periodic ones moved into the reference cell."""
+    x = np.asarray(u_mm, dtype=float) / surface.pixel_size_mm
+    y = np.asarray(v_mm, dtype=float) / surface.pixel_size_mm
+    x, y = np.broadcast_arrays(x, y)
+    if surface.periodic:
+        basis = np.column_stack([surface.t1_px, surface.t2_px]).astype(float)
+        inv = np.linalg.inv(basis)
+        o = surface.origin_px()
+        dx, dy = x - o[0], y - o[1]
+        a = inv[0, 0] * dx + inv[0, 1] * dy
+        b = inv[1, 0] * dx + inv[1, 1] * dy
+        a = a - np.floor(a)
+        b = b - np.floor(b)
+        x = o[0] + basis[0, 0] * a + basis[0, 1] * b
+        y = o[1] + basis[1, 0] * a + basis[1, 1] * b
+    return x, y
+
+
+def _index(i: np.ndarray, n: int, wrap: bool) -> np.ndarray:
+    if wrap:
+        return np.mod(i, n)
     period = 2 * (n - 1)
     i = np.mod(i, period)
     return np.where(i >= n, period - i, i)
 
 
+def _bspline_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    t2 = t * t
+    t3 = t2 * t
+    return (1 - t) ** 3 / 6.0, (3 * t3 - 6 * t2 + 4) / 6.0, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6.0, t3 / 6.0
+
+
 def sample_height(surface: Surface, u_mm: np.ndarray, v_mm: np.ndarray) -> np.ndarray:
-    """Bilinear heights (µm) at points (u, v) in mm, any shape; periodic or mirrored outside.
+    """Heights (µm) of the continuous surface at points (u, v) in mm, any shape (numpy only).
 
     Parameters
     ----------
@@ -113,34 +182,20 @@ def sample_height(surface: Surface, u_mm: np.ndarray, v_mm: np.ndarray) -> np.nd
     ndarray
         Heights in µm, float64, same shape as the broadcast inputs.
     """
-    h = np.asarray(surface.height_um, dtype=float)
-    ny, nx = h.shape
-    x = np.asarray(u_mm, dtype=float) / surface.pixel_size_mm
-    y = np.asarray(v_mm, dtype=float) / surface.pixel_size_mm
-    x, y = np.broadcast_arrays(x, y)
-    if surface.periodic:
-        basis = np.column_stack([surface.t1_px, surface.t2_px]).astype(float)
-        inv = np.linalg.inv(basis)
-        o = surface.origin_px()
-        dx, dy = x - o[0], y - o[1]
-        a = inv[0, 0] * dx + inv[0, 1] * dy
-        b = inv[1, 0] * dx + inv[1, 1] * dy
-        a -= np.floor(a)
-        b -= np.floor(b)
-        x = o[0] + basis[0, 0] * a + basis[0, 1] * b
-        y = o[1] + basis[1, 0] * a + basis[1, 1] * b
+    c = spline_coefficients(surface)
+    ny, nx = c.shape
+    wrap = _wraps(surface)
+    x, y = pixel_coordinates(surface, u_mm, v_mm)
     x0 = np.floor(x)
     y0 = np.floor(y)
-    fx = x - x0
-    fy = y - y0
+    wx = _bspline_weights(x - x0)
+    wy = _bspline_weights(y - y0)
     x0 = x0.astype(np.int64)
     y0 = y0.astype(np.int64)
-    if surface.periodic:
-        xa, xb = np.mod(x0, nx), np.mod(x0 + 1, nx)
-        ya, yb = np.mod(y0, ny), np.mod(y0 + 1, ny)
-    else:
-        xa, xb = _mirror_index(x0, nx), _mirror_index(x0 + 1, nx)
-        ya, yb = _mirror_index(y0, ny), _mirror_index(y0 + 1, ny)
-    top = h[ya, xa] * (1.0 - fx) + h[ya, xb] * fx
-    bottom = h[yb, xa] * (1.0 - fx) + h[yb, xb] * fx
-    return top * (1.0 - fy) + bottom * fy
+    xs = [_index(x0 + k, nx, wrap) for k in (-1, 0, 1, 2)]
+    out = np.zeros(x.shape)
+    for m in range(4):
+        row = _index(y0 + (m - 1), ny, wrap)
+        acc = wx[0] * c[row, xs[0]] + wx[1] * c[row, xs[1]] + wx[2] * c[row, xs[2]] + wx[3] * c[row, xs[3]]
+        out += wy[m] * acc
+    return out

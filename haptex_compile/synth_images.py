@@ -24,6 +24,9 @@ __all__ = [
     "add_slub",
     "add_noise",
     "jpeg_roundtrip",
+    "make_hard_case",
+    "PERIODIC_CASES",
+    "NON_PERIODIC_CASES",
 ]
 
 _TILE_GRID = 64        # tile sampled on 64 x 64 fractional positions before Fourier analysis
@@ -259,3 +262,80 @@ def jpeg_roundtrip(image: np.ndarray, quality: int = 50) -> np.ndarray:
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float64)
+
+
+# ---- the hard-case sweep shared by the tests and the benchmark -------------------------------
+
+PERIODIC_CASES = ("small period", "large period", "oblique", "rotated", "jpeg q50",
+                  "uneven light", "stain 5%", "slub 5%", "noise 20%", "2.5 periods")
+NON_PERIODIC_CASES = ("gravel", "grass", "brownian")
+
+
+def _random_basis(rng: np.random.Generator, lo: float, hi: float, angle=(60.0, 120.0)
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    p1 = rng.uniform(lo, hi)
+    p2 = float(np.clip(p1 * rng.uniform(0.8, 1.3), lo, hi))
+    return basis_from_geometry(p1, p2, rng.uniform(*angle), rng.uniform(0.0, 180.0))
+
+
+def make_hard_case(name: str, seed: int, size: int = 256) -> dict:
+    """One generated test image of a named hard case, with its ground truth.
+
+    Returns a dict with ``image`` (float array), ``periodic`` (bool) and, when periodic,
+    ``t1_px``/``t2_px`` (a basis of the true lattice; compare lattices, not vectors).
+    Periods are drawn at random (seeded) within the case's range; `size` is the image side.
+    """
+    rng = np.random.default_rng([seed, sum(map(ord, name))])
+    kind = ("plain", "twill", "random")[seed % 3]
+    shape = (size, size)
+    if name in NON_PERIODIC_CASES:
+        if name == "brownian":
+            return {"image": brownian_surface(shape, rng.uniform(0.15, 0.9), seed=seed),
+                    "periodic": False}
+        from skimage import data  # only the non-periodic real photos need scikit-image
+
+        full = getattr(data, name)().astype(np.float64)
+        if seed == 0 or size >= min(full.shape):
+            return {"image": full, "periodic": False}
+        y0 = int(rng.integers(0, full.shape[0] - size + 1))
+        x0 = int(rng.integers(0, full.shape[1] - size + 1))
+        crop = full[y0:y0 + size, x0:x0 + size]
+        return {"image": np.rot90(crop, int(rng.integers(0, 4))).copy(), "periodic": False}
+    if name == "small period":
+        t1, t2 = _random_basis(rng, 3.0, 8.0)
+    elif name == "large period":
+        t1, t2 = _random_basis(rng, size / 8.0, size / 4.0)
+    elif name == "oblique":
+        # the *given* basis is oblique (30-45 deg); its reduced form may be less so
+        t1, t2 = _random_basis(rng, 6.0, 30.0, angle=(30.0, 45.0))
+    elif name == "2.5 periods":
+        t1, t2 = _random_basis(rng, 30.0, 80.0)
+        # the image spans 2.5 of the longer reduced period along each axis
+        from haptex_compile.lattice import reduce_basis
+
+        a, b = reduce_basis(t1, t2)
+        side = int(math.ceil(2.5 * max(np.linalg.norm(a), np.linalg.norm(b))))
+        shape = (side, side)
+    else:
+        t1, t2 = _random_basis(rng, 6.0, 30.0)
+    origin = tuple(rng.uniform(0, 50, 2))
+    if name == "rotated":
+        angle = rng.uniform(5.0, 40.0) * rng.choice([-1.0, 1.0])
+        t1a, t2a = basis_from_geometry(rng.uniform(8, 24), rng.uniform(8, 24), 90.0, 0.0)
+        big = int(math.ceil(size * 1.5))
+        src = weave_image((big, big), t1a, t2a, kind=kind, origin_px=origin, seed=seed)
+        image, mat = rotate_image(src, angle, shape)
+        t1, t2 = mat @ t1a, mat @ t2a
+        return {"image": image, "periodic": True, "t1_px": t1, "t2_px": t2}
+    image = weave_image(shape, t1, t2, kind=kind, origin_px=origin, seed=seed)
+    if name == "jpeg q50":
+        image = jpeg_roundtrip(image, 50)
+    elif name == "uneven light":
+        image = add_uneven_light(image, 0.75)
+    elif name == "stain 5%":
+        image = add_stain(image, 0.05, seed=seed)
+    elif name == "slub 5%":
+        image = add_slub(image, t1 if seed % 2 else t2, 0.05, seed=seed)
+    elif name == "noise 20%":
+        image = add_noise(image, 0.2, seed=seed)
+    return {"image": image, "periodic": True, "t1_px": t1, "t2_px": t2}

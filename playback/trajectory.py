@@ -21,6 +21,7 @@ kind with the first example):
 """
 from __future__ import annotations
 
+import bisect
 import csv
 import logging
 import math
@@ -173,8 +174,11 @@ class SampledTrajectory:
         n_seg = int(self.segment.max()) + 1 if self.segment.size else 0
         first = np.searchsorted(self.segment, np.arange(n_seg), side="left")
         last = np.searchsorted(self.segment, np.arange(n_seg), side="right") - 1
-        self._seg_t0 = self.t[first]
-        self._seg_t1 = self.t[last]
+        self._seg_t0_l = self.t[first].tolist()
+        self._seg_t1_l = self.t[last].tolist()
+        # Python lists for the per-frame scalar path (numpy costs ~1 µs per call on scalars).
+        self._t_l, self._u_l, self._v_l = self.t.tolist(), self.u.tolist(), self.v.tolist()
+        self._p_l, self._seg_l = self.phi.tolist(), self.segment.tolist()
 
     def frame_count(self, frame_s: float) -> int:
         """Number of whole frames between the first and the last sample."""
@@ -196,6 +200,21 @@ class SampledTrajectory:
             out.append(arr[k] + w * (arr[k + 1] - arr[k]))
         return out[0], out[1], out[2]
 
+    def _pos1(self, t: float, seg: int) -> tuple[float, float, float]:
+        """Scalar position at `t`, clamped to segment `seg` (pure Python: called per frame)."""
+        t = min(max(t, self._seg_t0_l[seg]), self._seg_t1_l[seg])
+        k = bisect.bisect_right(self._t_l, t) - 1
+        k = min(max(k, 0), len(self._t_l) - 2)
+        t0, t1 = self._t_l[k], self._t_l[k + 1]
+        if self._seg_l[k + 1] != seg:  # t is the last sample of its segment
+            return self._u_l[k + 1 if t >= t1 else k], self._v_l[k + 1 if t >= t1 else k], self._p_l[k + 1 if t >= t1 else k]
+        if self._seg_l[k] != seg:
+            return self._u_l[k + 1], self._v_l[k + 1], self._p_l[k + 1]
+        w = min(max((t - t0) / (t1 - t0), 0.0), 1.0)
+        return (self._u_l[k] + w * (self._u_l[k + 1] - self._u_l[k]),
+                self._v_l[k] + w * (self._v_l[k + 1] - self._v_l[k]),
+                self._p_l[k] + w * (self._p_l[k + 1] - self._p_l[k]))
+
     def state(self, t_s: float, frame_s: float) -> MotionState:
         """State at a frame centre: interpolated position, chord velocity over the frame.
 
@@ -203,14 +222,15 @@ class SampledTrajectory:
         segment (at a break, or beyond the last sample) gets velocity 0, hence silence.
         """
         half = 0.5 * frame_s
-        k = int(np.clip(np.searchsorted(self.t, t_s, side="right") - 1, 0, self.t.size - 1))
-        seg = self.segment[k]
-        lo = max(t_s - half, float(self._seg_t0[seg]))
-        hi = min(t_s + half, float(self._seg_t1[seg]))
-        u, v, phi = (float(x) for x in self.position(t_s))
-        if hi - lo <= 1e-12:
+        k = min(max(bisect.bisect_right(self._t_l, t_s) - 1, 0), len(self._t_l) - 1)
+        seg = self._seg_l[k]
+        lo = max(t_s - half, self._seg_t0_l[seg])
+        hi = min(t_s + half, self._seg_t1_l[seg])
+        u, v, phi = self._pos1(t_s, seg)
+        if t_s > self.t_end or t_s < self.t_start or hi - lo <= 1e-12:
             return MotionState(t_s, u, v, phi, 0.0, 0.0, 0.0)
-        (u0, u1), (v0, v1), (p0, p1) = self.position(np.array([lo, hi]))
+        u0, v0, p0 = self._pos1(lo, seg)
+        u1, v1, p1 = self._pos1(hi, seg)
         dt = hi - lo
         return MotionState(t_s, u, v, phi, (u1 - u0) / dt, (v1 - v0) / dt, (p1 - p0) / dt)
 

@@ -317,6 +317,19 @@ def test_header_claiming_100000_squared_pixels_is_refused_before_decoding(tmp_pa
     assert read_image(small, max_pixels=256).grey.shape == (16, 16)
 
 
+def test_png_within_the_limit_but_with_too_little_data_is_refused_before_decoding(tmp_path):
+    # 10 000 x 10 000 is under the default limit, but 16 x 16 pixels of deflate data cannot
+    # expand (at most 1032-fold) to 100 MB: refused without allocating the image.
+    data = png_bytes(np.full((16, 16), 5, np.uint8), 0, ihdr_size=(10_000, 10_000))
+    start = time.perf_counter()
+    with pytest.raises(InputError, match="cannot hold 10000 x 10000 pixels"):
+        read_image(write(tmp_path, "bomb.png", data))
+    assert time.perf_counter() - start < 0.5
+    # The bound is not too tight: the most compressible real image (constant) still reads.
+    constant = encode(".png", np.zeros((2000, 3000), np.uint8))
+    assert read_image(write(tmp_path, "zero.png", constant)).grey.shape == (2000, 3000)
+
+
 def _valid_files() -> dict[str, bytes]:
     grey = np.rint(texture(40, 48, seed=2) * 255).astype(np.uint8)
     colour = np.stack([grey, grey[::-1], grey[:, ::-1]], axis=2)
@@ -534,7 +547,7 @@ def test_exr_refusals(tmp_path):
 # --------------------------------------------------------------------------- EXR writer
 
 
-def _decode_exr_from_spec(data: bytes) -> tuple[dict[str, bytes], dict[str, np.ndarray]]:
+def _decode_exr_from_spec(data: bytes) -> tuple[dict, dict[str, np.ndarray], int]:
     """Decode a single-part scanline ZIP EXR of float32 channels, independent of OpenEXR.
 
     Follows the file-layout specification: magic, version, attributes, offset table, then
@@ -566,12 +579,14 @@ def _decode_exr_from_spec(data: bytes) -> tuple[dict[str, bytes], dict[str, np.n
     n_chunks = -(-ny // 16)
     offsets = struct.unpack_from(f"<{n_chunks}Q", data, pos)
     planes = {name: np.empty((ny, nx), np.float32) for name in names}
+    compressed = 0
     for offset in offsets:
         y, size = struct.unpack_from("<ii", data, offset)
         lines = min(16, y1 - y + 1)
         raw_size = lines * len(names) * nx * 4
         block = data[offset + 8:offset + 8 + size]
         if size < raw_size:  # otherwise the chunk was stored uncompressed
+            compressed += 1
             d = np.frombuffer(zlib.decompress(block), np.uint8).astype(np.int64)
             # Undo the predictor d[i] = t[i] - t[i-1] + 128 (mod 256) ...
             t = (np.cumsum(np.concatenate([d[:1], d[1:] - 128])) & 0xFF).astype(np.uint8)
@@ -583,7 +598,7 @@ def _decode_exr_from_spec(data: bytes) -> tuple[dict[str, bytes], dict[str, np.n
         rows = np.frombuffer(block, "<f4").reshape(lines, len(names), nx)
         for index, name in enumerate(names):
             planes[name][y - y0:y - y0 + lines] = rows[:, index]
-    return attributes, planes
+    return attributes, planes, compressed
 
 
 def test_write_exr_is_standard_zip_scanline_float32(tmp_path):
@@ -592,7 +607,8 @@ def test_write_exr_is_standard_zip_scanline_float32(tmp_path):
             "a320": np.zeros((37, 23))}
     path = tmp_path / "out.exr"
     write_exr(path, maps, attributes={"pixel_size_um": "12.5", "speed_mm_s": "80"})
-    attributes, planes = _decode_exr_from_spec(path.read_bytes())
+    attributes, planes, compressed = _decode_exr_from_spec(path.read_bytes())
+    assert compressed >= 1  # the zlib path of the decoder was exercised
     assert sorted(planes) == ["a320", "a40", "height"]
     for name, values in maps.items():
         np.testing.assert_array_equal(planes[name], values.astype(np.float32))
@@ -676,8 +692,10 @@ def _report_fuzz_counts(request):
                  f"{FUZZ_COUNTS[r + ':refused']} refused" for r in readers]
         total = sum(v for k, v in FUZZ_COUNTS.items() if k.endswith(":tried"))
         line = f"fuzzed readers with {total} inputs, none crashed ({'; '.join(parts)})"
-        if reporter is not None:
-            reporter.write_line("\n" + line)
+        capture = request.config.pluginmanager.getplugin("capturemanager")
+        if reporter is not None and capture is not None:
+            with capture.global_and_fixture_disabled():  # shown even when output is captured
+                reporter.write_line("\n" + line)
         else:  # pragma: no cover
             print(line)
 

@@ -1,0 +1,204 @@
+"""Lookup tables of (a40, a320) over the surface, per direction and speed.
+
+For a constant velocity the frame analysis (:mod:`haptex_compile.frame_analysis`) is a filter
+along straight lines, so the tables evaluate it line by line instead of frame by frame:
+
+1. for a direction d, sample the surface on parallel lines along d (one pixel apart, through
+   :func:`~haptex_compile.surface.sample_height`, long enough to hold the analysis margins at
+   the fastest speed) and Fourier transform each line once;
+2. for each speed s, weight the line spectra by ``W_c(s k)`` (temporal frequency = speed x
+   spatial frequency), invert to the analytic signal, square its envelope, and average it with
+   the frame window along the line and with the footprint Gaussian across the lines (lines
+   ``across_spacing_mm`` apart);
+3. read the mean channel power at the table nodes (linear interpolation in the line grid; the
+   field is smooth there on the scale of the footprint), take square roots and decompose.
+
+Direction d and d + 180° give the same amplitudes (the envelope power is unchanged when time
+reverses), so directions are stored over [0, 180).
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+from scipy import ndimage
+
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.frame_analysis import (
+    AnalysisSettings,
+    across_spacing_mm,
+    footprint_offsets,
+    frame_window,
+    resolution_weight,
+)
+from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
+
+MAX_TABLE_NODES = 4_000_000  # per direction and speed; beyond this the grid is refused
+
+
+@dataclass(frozen=True)
+class TableGrid:
+    """Node positions: node [j, i] at ``origin_mm + i * basis_mm[0] + j * basis_mm[1]``."""
+
+    origin_mm: np.ndarray
+    basis_mm: np.ndarray  # rows g_i, g_j (mm)
+    shape: tuple[int, int]  # (n_j, n_i)
+    periodic: bool
+
+    def nodes_mm(self) -> np.ndarray:
+        nj, ni = self.shape
+        j, i = np.meshgrid(np.arange(nj), np.arange(ni), indexing="ij")
+        return self.origin_mm + i[..., None] * self.basis_mm[0] + j[..., None] * self.basis_mm[1]
+
+    @property
+    def spacing_mm(self) -> float:
+        return float(np.sqrt(abs(np.linalg.det(self.basis_mm))))
+
+
+@dataclass(frozen=True)
+class Tables:
+    """Amplitude tables [n_direction, n_speed, n_j, n_i] in µm, plus what produced them."""
+
+    a40: np.ndarray
+    a320: np.ndarray
+    intensity_p: np.ndarray
+    intensity_np: np.ndarray
+    out_of_gamut: np.ndarray
+    direction_deg: np.ndarray
+    speed_mm_s: np.ndarray
+    grid: TableGrid
+
+
+def table_grid(surface: Surface, spacing_mm: float) -> TableGrid:
+    """Grid for a surface: one lattice cell of a periodic surface (wrapping), else the whole map."""
+    if not (np.isfinite(spacing_mm) and spacing_mm > 0):
+        raise ValueError("grid spacing must be finite and positive")
+    if surface.periodic:
+        lat = surface.lattice_mm()
+        n_i = max(2, int(np.ceil(np.linalg.norm(lat[0]) / spacing_mm)))
+        n_j = max(2, int(np.ceil(np.linalg.norm(lat[1]) / spacing_mm)))
+        basis = np.array([lat[0] / n_i, lat[1] / n_j])
+        origin = surface.origin_px() * surface.pixel_size_mm
+        grid = TableGrid(origin, basis, (n_j, n_i), True)
+    else:
+        w, h = surface.extent_mm
+        n_i = max(2, int(round(w / spacing_mm)) + 1)
+        n_j = max(2, int(round(h / spacing_mm)) + 1)
+        basis = np.array([[w / (n_i - 1), 0.0], [0.0, h / (n_j - 1)]])
+        grid = TableGrid(np.zeros(2), basis, (n_j, n_i), False)
+    if grid.shape[0] * grid.shape[1] > MAX_TABLE_NODES:
+        raise ValueError(f"table grid of {grid.shape[1]} x {grid.shape[0]} nodes is too large; use a coarser spacing")
+    return grid
+
+
+def _direction_powers(
+    surface: Surface,
+    model: TwoColourModel,
+    settings: AnalysisSettings,
+    nodes: np.ndarray,
+    direction_deg: float,
+    speeds: np.ndarray,
+) -> np.ndarray:
+    """Mean channel powers [n_speed, 2, n_nodes] for one direction."""
+    px = surface.pixel_size_mm
+    sigma = settings.footprint_sigma_mm
+    d = np.deg2rad(direction_deg)
+    e = np.array([np.cos(d), np.sin(d)])
+    nrm = np.array([-np.sin(d), np.cos(d)])
+    a_nodes = nodes @ e
+    b_nodes = nodes @ nrm
+    s_max = float(speeds.max())
+    margin = s_max * (settings.frame_ms + settings.margin_ms) / 1000.0 + 3.0 * sigma + 2 * px
+    a0 = a_nodes.min() - margin
+    n_a = scipy.fft.next_fast_len(int(np.ceil((a_nodes.max() + margin - a0) / px)) + 1, real=True)
+    b0 = b_nodes.min() - 3.0 * sigma - 2 * px
+    n_b = int(np.ceil((b_nodes.max() + 3.0 * sigma + 2 * px - b0) / px)) + 1
+    a = a0 + np.arange(n_a) * px
+    b = b0 + np.arange(n_b) * px
+    # Same continuous surface as sample_height (cubic B-spline), evaluated in C by scipy.
+    x, y = pixel_coordinates(surface, a[None, :] * e[0] + b[:, None] * nrm[0], a[None, :] * e[1] + b[:, None] * nrm[1])
+    mode = "grid-wrap" if _wraps(surface) else "mirror"
+    heights = ndimage.map_coordinates(spline_coefficients(surface), np.stack([y.ravel(), x.ravel()]), order=3,
+                                      prefilter=False, mode=mode).reshape(x.shape)
+    # Make each line's ends meet (remove the end-to-end ramp: a linear trend is invisible to the
+    # weighting, which vanishes like f^2 at 0 Hz) so the circular transform sees no step.
+    ramp = np.linspace(0.0, 1.0, n_a)
+    heights -= heights[:, :1] + (heights[:, -1:] - heights[:, :1]) * ramp
+    spectrum = scipy.fft.rfft(heights, axis=1, workers=1)
+    k = scipy.fft.rfftfreq(n_a, d=px)  # cycles/mm
+    length_mm = n_a * px
+    out = np.empty((speeds.size, 2, nodes.shape[0]))
+    for si, s in enumerate(speeds):
+        f = s * k
+        n_keep = int(np.searchsorted(f, model.band.high_stop_hz))
+        step = max(1, int(round(across_spacing_mm(sigma, px, s, model) / px)))
+        lines = spectrum[::step, :n_keep]
+        spacing_b = step * px
+        n_out = scipy.fft.next_fast_len(max(2 * n_keep, int(np.ceil(length_mm * 2048.0 / s))))
+        n_out = min(n_out, n_a) if n_a >= 2 * n_keep else n_out
+        da = length_mm / n_out
+        # frame window along the line (in space: time offset x speed), normalised, circular
+        offsets = (np.arange(n_out) - n_out // 2) * da / s
+        kern = frame_window(offsets, settings.frame_ms, sigma / s)
+        kern = np.roll(kern / kern.sum(), -(n_out // 2))
+        kern_f = scipy.fft.rfft(kern)
+        bw, gw = footprint_offsets(sigma, spacing_b)
+        wp, wnp = model.weights(f[:n_keep])
+        res = resolution_weight(k[:n_keep], px)
+        wp, wnp = wp * res, wnp * res
+        for ci, w in enumerate((wp, wnp)):
+            z_spec = np.zeros((lines.shape[0], n_out), dtype=complex)
+            z_spec[:, :n_keep] = lines * (2.0 * w * n_out / n_a)
+            z_spec[:, 0] = 0.0
+            power = np.abs(scipy.fft.ifft(z_spec, axis=1)) ** 2
+            power = scipy.fft.irfft(scipy.fft.rfft(power, axis=1) * kern_f, n=n_out, axis=1)
+            if gw.size > 1:
+                power = ndimage.convolve1d(power, gw, axis=0, mode="nearest")
+            coords = np.vstack([(b_nodes - b0) / spacing_b, (a_nodes - a0) / da])
+            out[si, ci] = ndimage.map_coordinates(power, coords, order=1, mode="nearest")
+    return np.maximum(out, 0.0)
+
+
+def build_tables(
+    surface: Surface,
+    model: TwoColourModel,
+    settings: AnalysisSettings,
+    directions_deg: np.ndarray,
+    speeds_mm_s: np.ndarray,
+    grid: TableGrid,
+    workers: int = 2,
+) -> Tables:
+    """Compute the amplitude tables on `grid` for every direction and speed node.
+
+    Parameters
+    ----------
+    surface, model, settings
+        What is felt and how.
+    directions_deg : array_like
+        Direction nodes in [0, 180), strictly increasing.
+    speeds_mm_s : array_like
+        Speed nodes (mm/s), positive, strictly increasing.
+    grid : TableGrid
+    workers : int
+        Directions computed in parallel threads.
+    """
+    directions = np.asarray(directions_deg, dtype=float)
+    speeds = np.asarray(speeds_mm_s, dtype=float)
+    if directions.ndim != 1 or directions.size == 0 or np.any(np.diff(directions) <= 0) or directions[0] < 0 or directions[-1] >= 180:
+        raise ValueError("directions must be strictly increasing in [0, 180)")
+    if speeds.ndim != 1 or speeds.size == 0 or np.any(np.diff(speeds) <= 0) or speeds[0] <= 0 or not np.all(np.isfinite(speeds)):
+        raise ValueError("speeds must be positive, finite and strictly increasing")
+    nodes = grid.nodes_mm().reshape(-1, 2)
+
+    def one(d: float) -> np.ndarray:
+        return _direction_powers(surface, model, settings, nodes, d, speeds)
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        powers = np.stack(list(pool.map(one, directions)))  # [n_dir, n_speed, 2, n_nodes]
+    shape = (directions.size, speeds.size) + grid.shape
+    ip = np.sqrt(powers[:, :, 0]).reshape(shape)
+    inp = np.sqrt(powers[:, :, 1]).reshape(shape)
+    dec = model.decompose(ip, inp)
+    return Tables(dec.a40, dec.a320, ip, inp, dec.out_of_gamut, directions, speeds, grid)

@@ -1,0 +1,136 @@
+"""Recording of a playback run to HDF5 (``--record out.h5``), written atomically.
+
+Layout (the same for ``--mode tables`` and ``--mode direct``), n = frames sent, c = asset
+contactors, m = device channels, L = packet bytes:
+
+* ``/frames/t_s`` float64 [n]: frame centre, trajectory time (s)
+* ``/frames/index`` int64 [n]: frame number k (gaps = frames skipped because the player was late)
+* ``/frames/deadline_s``, ``/frames/sent_s`` float64 [n]: scheduled start and send completion on
+  the player's clock, relative to the start of the run
+* ``/frames/a40``, ``/frames/a320`` float32 [n, c]: amplitudes in µm before device calibration
+* ``/frames/flags`` uint8 [n, c]: interpolation flags (playback.interp)
+* ``/frames/codes`` uint16 [n, 2, m]: DAC codes sent (row 0: 40 Hz, row 1: 320 Hz)
+* ``/frames/render_us``, ``/frames/latency_us`` float32 [n]: render time; input snapshot to
+  packet accepted by the transport (end-to-end on the host)
+* ``/frames/input_age_ms`` float32 [n]: frame centre minus the newest trajectory sample used
+* ``/frames/gain`` float32 [n]: fade applied for a stale live source (1 = none)
+* ``/frames/late`` uint8 [n]: 1 if the packet left after the frame's scheduled start
+* ``/frames/clamped``, ``/frames/nonfinite`` uint16 [n]: safety counts of the frame
+* ``/frames/sequence`` uint32 [n], ``/frames/packet`` uint8 [n, L]: what went over the wire
+* ``/waveforms/volts`` float32 [samples, m] and ``/waveforms/t_s`` (only with ``--waveforms``)
+
+Root attributes describe the run (asset, mode, device, profile JSON, counters). The file is
+written to a temporary name in the same folder and renamed when complete.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from playback.errors import InputError
+
+RECORD_FORMAT = "haptex-playback-record"
+RECORD_VERSION = "1.0"
+
+
+class Recorder:
+    """Streams frames into a temporary HDF5 file; :meth:`close` renames it into place.
+
+    Parameters
+    ----------
+    path : str or Path
+        Final file name.
+    n_contactors, n_channels, packet_size : int
+        Array widths.
+    attrs : dict
+        Root attributes (JSON-encoded when not a plain number or string).
+    chunk : int
+        Frames buffered in memory between writes.
+    """
+
+    _SPEC = {
+        "t_s": (np.float64, ()), "index": (np.int64, ()), "deadline_s": (np.float64, ()),
+        "sent_s": (np.float64, ()), "render_us": (np.float32, ()), "latency_us": (np.float32, ()),
+        "input_age_ms": (np.float32, ()), "gain": (np.float32, ()), "late": (np.uint8, ()),
+        "clamped": (np.uint16, ()), "nonfinite": (np.uint16, ()), "sequence": (np.uint32, ()),
+    }
+
+    def __init__(self, path: str | Path, n_contactors: int, n_channels: int, packet_size: int,
+                 attrs: dict[str, Any] | None = None, chunk: int = 256) -> None:
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
+        spec = dict(self._SPEC)
+        spec.update({"a40": (np.float32, (n_contactors,)), "a320": (np.float32, (n_contactors,)),
+                     "flags": (np.uint8, (n_contactors,)), "codes": (np.uint16, (2, n_channels)),
+                     "packet": (np.uint8, (packet_size,))})
+        self.spec = spec
+        try:
+            self.file = h5py.File(self.tmp, "w")
+        except OSError as exc:
+            raise InputError(self.path, f"cannot create record ({exc})") from None
+        self.frames = self.file.create_group("frames")
+        for name, (dtype, shape) in spec.items():
+            self.frames.create_dataset(name, shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype,
+                                       chunks=(chunk,) + shape, track_times=False)
+        self.chunk = chunk
+        self._buf: dict[str, list[Any]] = {k: [] for k in spec}
+        self.n = 0
+        self.set_attrs(attrs or {})
+        self.file.attrs["format"] = RECORD_FORMAT
+        self.file.attrs["format_version"] = RECORD_VERSION
+
+    def set_attrs(self, attrs: dict[str, Any]) -> None:
+        """Set root attributes (dicts and lists become JSON strings)."""
+        for key, value in attrs.items():
+            if isinstance(value, (dict, list, tuple)) or value is None:
+                value = json.dumps(value, default=float)
+            self.file.attrs[key] = value
+
+    def append(self, **frame: Any) -> None:
+        """Add one frame; every field of the layout must be given."""
+        for key in self.spec:
+            self._buf[key].append(frame[key])
+        if len(self._buf["t_s"]) >= self.chunk:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write buffered frames to the file."""
+        m = len(self._buf["t_s"])
+        if not m:
+            return
+        for key, (dtype, _) in self.spec.items():
+            ds = self.frames[key]
+            ds.resize(self.n + m, axis=0)
+            ds[self.n:self.n + m] = np.asarray(self._buf[key], dtype=dtype)
+            self._buf[key].clear()
+        self.n += m
+
+    def write_waveforms(self, t_s: np.ndarray, volts: np.ndarray, rate_hz: float) -> None:
+        """Store synthesised drive waveforms (emulator only)."""
+        g = self.file.require_group("waveforms")
+        g.create_dataset("t_s", data=np.asarray(t_s, np.float64), track_times=False)
+        g.create_dataset("volts", data=np.asarray(volts, np.float32), track_times=False,
+                         chunks=True, compression="gzip", compression_opts=1)
+        g.attrs["sample_rate_hz"] = float(rate_hz)
+        g.attrs["description"] = "sqrt2 * (V40 sin(2 pi 40 t) + V320 sin(2 pi 320 t)) per device channel, volts"
+
+    def close(self, attrs: dict[str, Any] | None = None) -> Path:
+        """Flush, write the final attributes and rename the file into place."""
+        self.flush()
+        if attrs:
+            self.set_attrs(attrs)
+        self.file.close()
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Close and delete the temporary file."""
+        try:
+            self.file.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
