@@ -37,14 +37,18 @@ def _fabric_like(side: int, colour: bool, seed: int = 0) -> np.ndarray:
                      np.clip(grey * 1.1, 0, 255).astype(np.uint8)], axis=2)
 
 
-def _median_ms(function, repeats: int) -> float:
-    function()  # warm caches (page cache, allocator)
-    times = []
+def _interleaved_ms(functions: list, repeats: int) -> list[float]:
+    """Median wall time (ms) of each function, timed in turn so that load from other
+    processes falls on all of them alike."""
+    for function in functions:
+        function()  # warm caches (page cache, allocator)
+    times: list[list[float]] = [[] for _ in functions]
     for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+        for function, bucket in zip(functions, times):
+            start = time.perf_counter()
+            function()
+            bucket.append(time.perf_counter() - start)
+    return [1e3 * statistics.median(bucket) for bucket in times]
 
 
 def run(quick: bool = False) -> str:
@@ -60,7 +64,7 @@ def run(quick: bool = False) -> str:
     str
         A markdown table: per file, the cv2.imread floor, read_image, and their ratio.
     """
-    side, repeats = 4000, (3 if quick else 9)
+    side, repeats = 4000, (2 if quick else 9)
     rows = []
     with tempfile.TemporaryDirectory(prefix="haptex_bench_io_") as tmp:
         files = []
@@ -76,17 +80,19 @@ def run(quick: bool = False) -> str:
         for label, path, ext, colour in files:
             # The flags read_image decodes with: the floor for the same decoded pixels.
             flags = cv2.IMREAD_GRAYSCALE if ext == ".jpg" else cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
-            floor = _median_ms(lambda: cv2.imread(str(path), flags), repeats)
-            naive = _median_ms(lambda: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2GRAY)
-                               .astype(np.float64) / 255.0, repeats)
-            ours = _median_ms(lambda: read_image(path), repeats)
+            floor, naive, ours = _interleaved_ms([
+                lambda: cv2.imread(str(path), flags),
+                lambda: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2GRAY)
+                .astype(np.float64) / 255.0,
+                lambda: read_image(path)], repeats)
             size_mb = path.stat().st_size / 1e6
             rows.append(f"| {label} | {size_mb:.1f} | {floor:.0f} | {naive:.0f} | {ours:.0f} | "
                         f"{ours / floor:.2f} |")
     header = ["| file | MB | cv2.imread floor (ms) | imread colour + cvtColor + float (ms) | "
               "read_image (ms) | read_image / floor |",
               "| --- | ---: | ---: | ---: | ---: | ---: |"]
-    note = (f"\nMedian of {repeats} runs after one warm-up; files in the page cache. Floor: "
+    note = (f"\nMedian of {repeats} interleaved runs after one warm-up; files in the page "
+            "cache; machine load at the time affects all columns alike. Floor: "
             "cv2.imread with the decode flags read_image uses (grey for JPEG, any depth/colour "
             "for PNG).\n")
     return "\n".join(header + rows) + "\n" + note

@@ -132,6 +132,11 @@ def _slope_over_p(mean_pv: np.ndarray, p: float) -> np.ndarray:
     return (y * x).sum(axis=-1) / (x * x).sum() / p
 
 
+def _overlap(n_a: int, n_b: int, offsets: np.ndarray) -> np.ndarray:
+    """Number of i in [0, n_a) with i + d in [0, n_b), for each offset d."""
+    return np.clip(np.minimum(n_a, offsets + n_b) - np.maximum(0, offsets), 0, None)
+
+
 def _model_sd(valid: np.ndarray, hurst: float, p: float, max_lag: int, axes: list[int]) -> float:
     """SD of the transect estimate if the data were fBm of index `hurst` (Gaussian, exact).
 
@@ -144,14 +149,21 @@ def _model_sd(valid: np.ndarray, hurst: float, p: float, max_lag: int, axes: lis
     bootstrap misses). The delta method carries the covariance to H.
     """
     ny, nx = valid.shape
+    full = bool(valid.all())
     py = scipy.fft.next_fast_len(2 * ny - 1, real=True)
     px = scipy.fft.next_fast_len(2 * nx - 1, real=True)
     oy = np.fft.fftfreq(py, 1.0 / py)[:, None]
     ox = np.fft.fftfreq(px, 1.0 / px)[None, :]
-    two_h = 2.0 * hurst
+
+    cache: dict[tuple[float, float], np.ndarray] = {}
 
     def dist(vy: float, vx: float) -> np.ndarray:
-        return np.hypot(oy + vy, ox + vx) ** two_h
+        # |d + v|^(2H) on the offset grid; few distinct shifts recur, so cache them.
+        key = (vy, vx)
+        if key not in cache:
+            r2 = (oy + vy) ** 2 + (ox + vx) ** 2
+            cache[key] = r2 ** hurst
+        return cache[key]
 
     base = dist(0.0, 0.0)
     stats = []  # (axis, lag, indicator spectrum, expected mean per pair)
@@ -164,15 +176,22 @@ def _model_sd(valid: np.ndarray, hurst: float, p: float, max_lag: int, axes: lis
                 ind[:-lag, :] = valid[:-lag, :] & valid[lag:, :]
             sigma = float(lag) ** hurst
             mean = sigma**2 if p == 2 else sigma * math.sqrt(2.0 / math.pi)
-            stats.append((axis, lag, scipy.fft.rfft2(ind.astype(np.float64), s=(py, px), workers=2), mean, int(ind.sum()), sigma))
+            spec = None if full else scipy.fft.rfft2(ind.astype(np.float64), s=(py, px), workers=2)
+            stats.append((axis, lag, spec, mean, int(ind.sum()), sigma))
     n = len(stats)
     cov = np.zeros((n, n))
     for a in range(n):
         for b in range(a, n):
             axis_a, lag_a, spec_a, _, _, sig_a = stats[a]
             axis_b, lag_b, spec_b, _, _, sig_b = stats[b]
-            pairs = scipy.fft.irfft2(np.conj(spec_a) * spec_b, s=(py, px), workers=2)
-            pairs = np.rint(pairs)
+            if full:
+                # Rectangles of starts: the counts factor into 1-D overlaps per axis.
+                pairs = np.outer(
+                    _overlap(ny - (lag_a if axis_a == 0 else 0), ny - (lag_b if axis_b == 0 else 0), oy[:, 0]),
+                    _overlap(nx - (lag_a if axis_a == 1 else 0), nx - (lag_b if axis_b == 1 else 0), ox[0]),
+                )
+            else:
+                pairs = np.rint(scipy.fft.irfft2(np.conj(spec_a) * spec_b, s=(py, px), workers=2))
             u = (0.0, float(lag_a)) if axis_a == 1 else (float(lag_a), 0.0)
             v = (0.0, float(lag_b)) if axis_b == 1 else (float(lag_b), 0.0)
             # Cov(X(i+u)-X(i), X(j+v)-X(j)) with d = j - i.
@@ -190,7 +209,7 @@ def _model_sd(valid: np.ndarray, hurst: float, p: float, max_lag: int, axes: lis
     return float(math.sqrt(max(grad @ cov @ grad, 0.0)))
 
 
-def _transect_estimate(z: np.ndarray, valid: np.ndarray, method: str, max_lag: int) -> HurstEstimate:
+def _transect_estimate(z: np.ndarray, valid: np.ndarray, method: str, max_lag: int, ci: str) -> HurstEstimate:
     p = 2.0 if method == "variogram" else 1.0
     directions = []
     axes = []
@@ -228,9 +247,11 @@ def _transect_estimate(z: np.ndarray, valid: np.ndarray, method: str, max_lag: i
     replicates = np.mean(boot, axis=0)
     replicates = replicates[np.isfinite(replicates)]
     sd_boot = float(np.std(replicates, ddof=1)) if replicates.size > 1 else 0.0
-    sd_model = _model_sd(valid, float(np.clip(hurst, 0.01, 0.99)), p, max_lag, axes)
+    if ci == "none":
+        return HurstEstimate(hurst, 3.0 - hurst, math.nan, math.nan, method, n_samples=n_used)
+    sd_model = _model_sd(valid, float(np.clip(hurst, 0.01, 0.99)), p, max_lag, axes) if ci == "auto" else 0.0
     half = scipy.stats.norm.ppf(0.5 + _CI_LEVEL / 2.0) * max(sd_boot, sd_model)
-    return HurstEstimate(hurst, 3.0 - hurst, hurst - half, hurst + half, method, n_samples=n_used)
+    return HurstEstimate(hurst, 3.0 - hurst, float(hurst - half), float(hurst + half), method, n_samples=n_used)
 
 
 def _largest_valid_rectangle(valid: np.ndarray) -> tuple[slice, slice]:
@@ -243,21 +264,18 @@ def _largest_valid_rectangle(valid: np.ndarray) -> tuple[slice, slice]:
         stack: list[int] = []
         hs = heights.tolist() + [0]
         for col, h in enumerate(hs):
-            start = col
             while stack and hs[stack[-1]] >= h:
                 top = stack.pop()
                 left = stack[-1] + 1 if stack else 0
                 area = hs[top] * (col - left)
                 if area > best[0]:
                     best = (area, row + 1 - hs[top], row + 1, left, col)
-                start = left
             stack.append(col)
-            del start
     _, top, bottom, left, right = best
     return slice(top, bottom), slice(left, right)
 
 
-def _spectral_estimate(z: np.ndarray, valid: np.ndarray) -> HurstEstimate:
+def _spectral_estimate(z: np.ndarray, valid: np.ndarray, ci: str) -> HurstEstimate:
     if not valid.all():
         rows, cols = _largest_valid_rectangle(valid)
         z = z[rows, cols]
@@ -270,8 +288,9 @@ def _spectral_estimate(z: np.ndarray, valid: np.ndarray) -> HurstEstimate:
     yy, xx = np.mgrid[0:ny, 0:nx]
     design = np.column_stack([np.ones(z.size), yy.ravel(), xx.ravel()])
     coef, *_ = np.linalg.lstsq(design, z.ravel(), rcond=None)
+    scale = float(np.abs(z).max())
     z = z - (design @ coef).reshape(ny, nx)
-    if not np.any(z):
+    if float(np.abs(z).max()) <= 1e-10 * scale:
         raise ValueError("the height map is a plane; H is undefined")
     window = np.hanning(ny)[:, None] * np.hanning(nx)[None, :]
     power = np.abs(scipy.fft.rfft2(z * window, workers=2)) ** 2
@@ -316,17 +335,24 @@ def _spectral_estimate(z: np.ndarray, valid: np.ndarray) -> HurstEstimate:
         return float(res.x)
 
     hurst = fit(order)
+    if ci == "none":
+        return HurstEstimate(hurst, 3.0 - hurst, math.nan, math.nan, "spectral", n_samples=int(in_band.sum()))
     per_sector = np.array([fit(np.flatnonzero(sector_of == s)) for s in range(_SPECTRAL_SECTORS)])
     per_sector = per_sector[np.isfinite(per_sector)]
     if per_sector.size >= 2:
         half = scipy.stats.t.ppf(0.5 + _CI_LEVEL / 2.0, per_sector.size - 1) * per_sector.std(ddof=1) / math.sqrt(per_sector.size)
     else:
         half = math.nan
-    return HurstEstimate(hurst, 3.0 - hurst, hurst - half, hurst + half, "spectral", n_samples=int(in_band.sum()))
+    return HurstEstimate(hurst, 3.0 - hurst, float(hurst - half), float(hurst + half), "spectral", n_samples=int(in_band.sum()))
 
 
 def estimate_hurst(
-    height: np.ndarray, *, method: str = "variogram", mask: np.ndarray | None = None, max_lag: int = 2
+    height: np.ndarray,
+    *,
+    method: str = "variogram",
+    mask: np.ndarray | None = None,
+    max_lag: int = 2,
+    ci: str = "auto",
 ) -> HurstEstimate:
     """Estimate the Hurst index H and fractal dimension D = 3 - H of a height map.
 
@@ -341,6 +367,10 @@ def estimate_hurst(
         True where the heights are valid; pixel pairs touching an invalid pixel are skipped.
     max_lag : int
         Largest lag (px) of the transect estimators' log-log fit (2 as in Gneiting et al.).
+    ci : {"auto", "bootstrap", "none"}
+        Confidence interval: ``"auto"`` as described in the module notes; ``"bootstrap"``
+        uses only the block bootstrap (transect methods; faster, too narrow for H > 1/2);
+        ``"none"`` skips it (bounds NaN), for bulk runs such as bias tables.
 
     Returns
     -------
@@ -355,12 +385,14 @@ def estimate_hurst(
     """
     if method not in ("variogram", "madogram", "spectral"):
         raise ValueError(f"unknown method {method!r} (use 'variogram', 'madogram' or 'spectral')")
+    if ci not in ("auto", "bootstrap", "none"):
+        raise ValueError(f"unknown ci {ci!r} (use 'auto', 'bootstrap' or 'none')")
     if isinstance(max_lag, bool) or not isinstance(max_lag, (int, np.integer)) or max_lag < 2:
         raise ValueError(f"max_lag must be an integer >= 2, got {max_lag!r}")
     z, valid = _prepare(height, mask)
     if method == "spectral":
-        return _spectral_estimate(z, valid)
-    return _transect_estimate(z, valid, method, int(max_lag))
+        return _spectral_estimate(z, valid, ci)
+    return _transect_estimate(z, valid, method, int(max_lag), ci)
 
 
 def roughness_from_residual(

@@ -301,12 +301,12 @@ def _dilate_lines(lines: np.ndarray, offsets: np.ndarray, sag: np.ndarray, perio
     half = int(offsets.max(initial=0))
     if half == 0:
         return lines
+    n = lines.shape[0]
     if periodic:
-        padded = np.concatenate([lines[-half:], lines, lines[:half]], axis=0)
+        padded = lines[np.arange(-half, n + half) % n]  # wraps even when n < the wire width
     else:
         pad = np.full((half,) + lines.shape[1:], -np.inf, dtype=lines.dtype)
         padded = np.concatenate([pad, lines, pad], axis=0)
-    n = lines.shape[0]
     out = padded[half + offsets[0]: half + offsets[0] + n] + sag[0]
     for off, s in zip(offsets[1:], sag[1:]):
         np.maximum(out, padded[half + off: half + off + n] + s, out=out)
@@ -520,7 +520,8 @@ class _Model:
 
     def height(self, p: np.ndarray) -> np.ndarray:
         alpha, p_u, p_v = self.weights(p)
-        return (alpha * self.base + p_u * self.rho_u[None, :] + p_v * self.rho_v[:, None]).astype(np.float32)
+        height = alpha * self.base + p_u * self.rho_u[None, :] + p_v * self.rho_v[:, None]
+        return (height - height.mean()).astype(np.float32)  # zero mean: only relief matters
 
 
 def _build_model(kes: KesData, pixel_size_um: float, seed: int, min_extent_mm: float) -> _Model:
@@ -630,7 +631,6 @@ def kes_surface(kes: KesData, *, pixel_size_um: float = 10.0, seed: int = 0, min
     smd = {d: simulate_kes_smd(height, pixel_size_um, d) for d in ("warp", "weft")}
     friction = friction_map(height, pixel_size_um, kes.miu, kes.mmd)
     alpha, p_u, p_v = model.weights(p)
-    picks_rep, ends_rep = weave_matrix(kes.weave).shape
     _, n_ends, n_picks, _, _ = _grid(kes.ends_per_cm, kes.picks_per_cm, kes.weave, pixel_size_um, min_extent_mm)
     calibration = {
         "p_u_um": p_u, "p_v_um": p_v, "alpha_um": alpha,

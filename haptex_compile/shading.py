@@ -35,7 +35,7 @@ __all__ = [
 #: Pixels at or above this (saturated) or at or below DARK (black) carry no slope information.
 SATURATED = 0.99
 DARK = 0.01
-METHODS = ("default", "variational", "tsai-shah", "linear")
+METHODS = ("default", "accurate", "tsai-shah")
 # Below this slant the linear term of the reflectance (the only one that fixes the sign of the
 # slopes) is too weak: shape from shading is ill-posed and we fall back (see shape_from_shading).
 MIN_SLANT_DEG = 5.0
@@ -296,3 +296,400 @@ def tsai_shah(
             Z = Z - K * f  # Newton: Z - f / f' when W -> 0
     Z = np.where(np.isfinite(Z), Z, 0.0)
     return (Z - Z.mean()) * pixel_size_um
+
+
+# --------------------------------------------------------------------------------------------
+# Light and albedo estimation
+
+
+def _moment_albedo(values: np.ndarray, slant_deg: float) -> float:
+    """Albedo from the mean and variance of the intensities, for a known slant.
+
+    For a stationary surface the linear term of ``R`` averages out, so with isotropic slopes
+    (``<g²> = 2 <g_l²>``) to second order ``mean = a cos s (1 - var / (a² sin² s))``: a quadratic
+    in the albedo ``a``. Bounded below by the brightest pixels (``R <= 1``).
+    """
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return 1.0
+    m, var = float(v.mean()), float(v.var())
+    s = np.deg2rad(np.clip(slant_deg, 1.0, 85.0))
+    c = np.cos(s)
+    a = (m + np.sqrt(m * m + 4 * c * c * var / np.sin(s) ** 2)) / (2 * c)
+    top = float(np.percentile(v, 99.9))
+    return float(max(a, top, 1e-3))
+
+
+def _downsample_to(img: np.ndarray, valid: np.ndarray, side: int):
+    """Area-average image and weights so that the larger side is at most `side` pixels."""
+    import cv2
+
+    rows, cols = img.shape
+    f = max(rows, cols) / side
+    if f <= 1:
+        return img.astype(np.float32), valid.astype(np.float32)
+    size = (max(int(round(cols / f)), 8), max(int(round(rows / f)), 8))
+    w = valid.astype(np.float32)
+    wi = cv2.resize(np.where(valid, img, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    ww = cv2.resize(w, size, interpolation=cv2.INTER_AREA)
+    out = np.where(ww > 1e-3, wi / np.maximum(ww, 1e-3), 0.0).astype(np.float32)
+    return out, (ww > 0.5).astype(np.float32)
+
+
+def _tilt_axis(img: np.ndarray, valid: np.ndarray) -> tuple[float, float, float]:
+    """Axis of the light's tilt from the image-gradient second moments.
+
+    For an isotropic surface under the linear part of the reflectance, the gradient moment
+    tensor is proportional to ``1 + 2 l l^T`` (l = tilt direction): its principal axis is the
+    tilt, up to 180°. Returns (axis in degrees in [0, 180), anisotropy (l1-l2)/(l1+l2), sd).
+    """
+    gy, gx = np.gradient(np.where(valid, img, 0.0))
+    ok = ndimage.binary_erosion(valid, iterations=1, border_value=0)
+    if ok.sum() < 16:
+        ok = valid
+    gx, gy = gx * ok, gy * ok
+
+    def axis(sl):
+        jxx = float(np.sum(gx[sl] ** 2))
+        jyy = float(np.sum(gy[sl] ** 2))
+        jxy = float(np.sum(gx[sl] * gy[sl]))
+        ang = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+        tr = jxx + jyy
+        aniso = np.hypot(jxx - jyy, 2 * jxy) / tr if tr > 0 else 0.0
+        return ang, aniso
+
+    ang, aniso = axis((slice(None), slice(None)))
+    # Spread over 4 x 4 blocks: the axial (doubled-angle) circular spread, / sqrt(blocks).
+    rows, cols = img.shape
+    doubled = []
+    for i in range(4):
+        for j in range(4):
+            sl = (slice(i * rows // 4, (i + 1) * rows // 4), slice(j * cols // 4, (j + 1) * cols // 4))
+            a, _ = axis(sl)
+            doubled.append(2 * a)
+    c, s = np.mean(np.cos(doubled)), np.mean(np.sin(doubled))
+    r = min(max(np.hypot(c, s), 1e-9), 1.0)
+    sd_block = 0.5 * np.rad2deg(np.sqrt(-2 * np.log(r)))
+    sd = float(min(sd_block / 4.0 + (90.0 if aniso < 0.02 else 0.0), 90.0))
+    return float(np.rad2deg(ang) % 180.0), float(aniso), sd
+
+
+def _moment_slant(values: np.ndarray) -> float:
+    """Slant from the intensity moments, for Gaussian isotropic slopes (small-slope expansion).
+
+    With ``I = a (c - s g_l) / sqrt(1 + g²)`` and slopes ``N(0, sigma²)`` per component, to
+    leading order ``mean = a c``, ``var = a² s² sigma²`` and third central moment
+    ``mu3 = -3 a³ s² c sigma⁴``, hence ``tan² slant = -3 var² / (mean mu3)``. The shading of
+    a surface is negatively skewed (slopes only darken the flat-surface value ``a c``); no skew
+    means grazing light. Returns degrees in [0, 90].
+    """
+    v = values[np.isfinite(values)]
+    m = float(v.mean())
+    var = float(v.var())
+    mu3 = float(np.mean((v - m) ** 3))
+    if m <= 0 or var <= 0:
+        return 0.0
+    if mu3 >= 0:
+        return 90.0
+    return float(np.rad2deg(np.arctan(np.sqrt(-3.0 * var * var / (m * mu3)))))
+
+
+def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, float]:
+    """Estimate the light direction (with its uncertainty) and the albedo from one image.
+
+    Statistics of the shading of a stationary, isotropic random surface (in the spirit of
+    Pentland 1982 and Lee & Rosenfeld 1985):
+
+    - tilt: the principal axis of the image-gradient moment tensor, which is proportional to
+      ``1 + 2 l l^T`` for such surfaces in the linear-shading regime. The sign is not
+      observable (a surface lit from ``t`` looks exactly like the inverted surface lit from
+      ``t + 180°``); the convention is the human one, light from the top of the image
+      (``sin(tilt) <= 0``);
+    - slant: from the mean, variance and (negative) skew of the intensities
+      (:func:`_moment_slant`);
+    - albedo: from the mean and variance at that slant (:func:`_moment_albedo`);
+    - with `refine`, the tilt is then refined by the energy of the default solver on a reduced
+      image (:func:`_refine_tilt`): the solver is very sensitive to the tilt (3° off on smooth
+      bumps triples its error), and the energy discriminates the tilt to a fraction of a degree.
+
+    The uncertainties are the spread of the same estimators over 4 x 4 blocks divided by 4
+    (sampling only), with a floor of 5° for the slant's model error; surfaces with
+    strongly non-Gaussian slopes (e.g. woven yarns) bias the slant by 10-20°.
+
+    Parameters
+    ----------
+    image : ndarray
+        Grey image (integers are scaled by their maximum; floats should be in [0, 1]).
+    mask : ndarray of bool, optional
+        Pixels to use.
+    refine : bool
+        Refine the tilt by the solver's energy (about 20 solves on a 96-pixel image).
+
+    Returns
+    -------
+    (Light, float)
+        The light with its uncertainty, and the albedo.
+    """
+    img, _ = _as_image(image)
+    valid = valid_pixels(img, mask)
+    if valid.sum() < 16 or float(np.std(img[valid])) < 1e-4:
+        # No shading: nothing to estimate. Overhead light with full uncertainty.
+        top = float(np.max(img[valid])) if valid.any() else 1.0
+        return Light(0.0, 0.0, 90.0, 180.0), max(top, 1e-3)
+    axis, _aniso, tilt_sd = _tilt_axis(img, valid)
+    tilt = axis if axis == 0 else axis + 180.0  # sin(tilt) <= 0: light from the image top
+    slant = _moment_slant(img[valid])
+    rows, cols = img.shape
+    blocks = []
+    for i in range(4):
+        for j in range(4):
+            sl = (slice(i * rows // 4, (i + 1) * rows // 4), slice(j * cols // 4, (j + 1) * cols // 4))
+            vb = img[sl][valid[sl]]
+            if vb.size >= 16 and float(np.std(vb)) > 1e-4:
+                blocks.append(_moment_slant(vb))
+    slant_sd = float(np.std(blocks) / np.sqrt(len(blocks))) if len(blocks) > 1 else 90.0
+    slant_sd = float(min(max(slant_sd, 5.0), 90.0))
+    if refine and slant >= MIN_SLANT_DEG:
+        slant, tilt, slant_sd, tilt_sd = _refine_light(img, valid, slant, tilt, slant_sd)
+    albedo = _moment_albedo(img[valid], slant)
+    return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
+
+
+def _refine_light(img, valid, slant, tilt, slant_sd_stat, side=96):
+    """Refine slant and tilt by the data misfit the default solver leaves on a reduced image.
+
+    A wrong light leaves shading that no surface explains. The misfit (data term only: the
+    smoothness term favours grazing light, whose shallower slopes are smoother) is searched by
+    coordinates in halving steps, the tilt within ±24° of the statistical estimate and the
+    slant within ±15° of it (at high slant the misfit keeps falling slowly towards grazing
+    light, so the statistical estimate bounds it). Returns (slant, tilt, slant_sd, tilt_sd);
+    the uncertainties are the changes that raise the misfit by 20 % (parabola through the last
+    three energies), at least 0.5°.
+    """
+    from haptex_compile.shading_variational import energy, solve_variational
+
+    small, w = _downsample_to(img, valid, side)
+    lo, hi = max(MIN_SLANT_DEG, slant - 15.0), min(85.0, slant + 15.0)
+    cache: dict[tuple[float, float], float] = {}
+
+    def e_of(s, t):
+        s = float(np.clip(s, lo, hi))
+        key = (round(s, 3), round(float(t), 3))
+        if key not in cache:
+            lv = Light(s, t % 360.0).vector
+            a0 = _moment_albedo(small[w > 0], s)
+            z, a = solve_variational(small, w, lv, a0, min_size=16)
+            cache[key] = energy(small, w, lv, a, z, lam=0.0)
+        return cache[key]
+
+    s, t = float(np.clip(slant, lo, hi)), float(tilt)
+    step_t = 12.0
+    while step_t >= 0.75:  # tilt first: sharp even at a wrong slant
+        cands = [t - step_t, t, t + step_t]
+        t_new = cands[int(np.argmin([e_of(s, c) for c in cands]))]
+        if t_new == t:
+            step_t /= 2
+        t = t_new
+    grid = np.arange(lo, hi + 1e-9, 2.5)
+    es = np.array([e_of(g, t) for g in grid])
+    k = int(np.argmin(es))
+    # Accept the misfit's minimum only inside a clear well; otherwise keep the statistics.
+    if 0 < k < len(grid) - 1 and min(es[0], es[-1]) >= 1.5 * es[k]:
+        d1, d2 = es[k + 1] - es[k - 1], es[k + 1] - 2 * es[k] + es[k - 1]
+        s = float(grid[k]) + (float(np.clip(-0.5 * d1 / d2, -0.5, 0.5)) * 2.5 if d2 > 0 else 0.0)
+        t_s = t
+        step_t = 1.5
+        while step_t >= 0.4:  # re-polish the tilt at the new slant
+            cands = [t_s - step_t, t_s, t_s + step_t]
+            t_new = cands[int(np.argmin([e_of(s, c) for c in cands]))]
+            if t_new == t_s:
+                step_t /= 2
+            t_s = t_new
+        t = t_s
+        well = True
+    else:
+        well = False
+
+    def sd(f, x, h):
+        e0, em, ep = f(x), f(x - h), f(x + h)
+        curv = (em + ep - 2 * e0) / h**2
+        return float(np.sqrt(0.4 * e0 / curv)) if curv > 0 and e0 > 0 else 90.0
+
+    tilt_sd = sd(lambda x: e_of(s, x), t, 1.0)
+    slant_sd = sd(lambda x: e_of(x, t), s, 1.0) if well else slant_sd_stat
+    return s, t, min(max(slant_sd, 0.5), 90.0), min(max(tilt_sd, 0.5), 90.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The driver
+
+
+def _brightness_start(img: np.ndarray, valid: np.ndarray, albedo: float, cos_s: float) -> np.ndarray:
+    """Starting height for near-overhead light: bright = high (convex surfaces), with the slope
+    magnitude that the intensities imply (``|g|² = (albedo cos s / I)² - 1``); pixel units."""
+    fill = np.where(valid, img, np.mean(img[valid]) if valid.any() else 0.5)
+    z = ndimage.gaussian_filter(fill, 2.0, mode="wrap")
+    z -= z.mean()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g2 = (albedo * cos_s / np.maximum(img, 1e-3)) ** 2 - 1.0
+    target = float(np.sqrt(np.mean(np.clip(g2[valid], 0.0, 4.0)))) if valid.any() else 0.0
+    gy, gx = np.gradient(z)
+    cur = float(np.sqrt(np.mean(gx * gx + gy * gy)))
+    return z * (target / cur) if cur > 0 else z
+
+
+def shape_from_shading(
+    image,
+    *,
+    pixel_size_um: float,
+    light: Light | None = None,
+    method: str = "default",
+    periodic: bool = False,
+    mask=None,
+) -> SfsResult:
+    """Relative heights from one Lambertian image.
+
+    Parameters
+    ----------
+    image : ndarray
+        Grey image (integers are scaled by their maximum; floats should be in [0, 1]).
+    pixel_size_um : float
+        Pixel size in µm.
+    light : Light, optional
+        The light; estimated with :func:`estimate_light` when omitted.
+    method : str
+        ``"default"`` (Gauss-Newton on the exact Lambertian energy, coarse to fine, see
+        :mod:`haptex_compile.shading_variational`), ``"accurate"`` (the same with more
+        iterations, about 3 x slower) or ``"tsai-shah"`` (:func:`tsai_shah`, for comparison).
+    periodic : bool
+        The image is a tile: the height wraps seamlessly. Otherwise the image is embedded in a
+        larger periodic domain whose margin carries no data, so its edges are free.
+    mask : ndarray of bool, optional
+        Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
+        excluded and filled by the smoothness term.
+
+    Returns
+    -------
+    SfsResult
+        Heights in µm as implied by the light and albedo (mean 0), the light and albedo used,
+        the method and warnings.
+    """
+    from haptex_compile.shading_variational import solve_variational
+
+    if not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
+        raise ValueError(f"pixel_size_um must be finite and positive, got {pixel_size_um!r}")
+    if method not in METHODS:
+        raise ValueError(f"unknown shape-from-shading method {method!r} (use one of {METHODS})")
+    img, warnings = _as_image(image)
+    valid = valid_pixels(img, mask)
+    n_bad = int(img.size - valid.sum())
+    if n_bad:
+        warnings.append(
+            f"{n_bad} saturated, black, non-finite or masked pixels carry no slope information;"
+            " filled by smoothness"
+        )
+    flat = np.zeros(img.shape)
+    if valid.sum() < max(16, 0.01 * img.size) or float(np.std(img[valid])) < 1e-4:
+        warnings.append("image has no usable shading (flat or almost all masked): height is flat")
+        used = light if light is not None else Light(0.0, 0.0, 90.0, 180.0)
+        top = float(np.max(img[valid])) if valid.any() else 1.0
+        return SfsResult(flat, used, top, method, tuple(warnings))
+    if light is None:
+        light, albedo = estimate_light(img, mask=valid)
+        warnings.append(
+            f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
+            f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
+            " versus dents, is resolved by assuming light from the top of the image)"
+        )
+    else:
+        albedo = _moment_albedo(img[valid], light.slant_deg)
+
+    if method == "tsai-shah":
+        if light.slant_deg < MIN_SLANT_DEG:
+            warnings.append(
+                "light along the view axis: Tsai-Shah's df/dZ vanishes at the flat start and the"
+                " height stays flat"
+            )
+        h = tsai_shah(np.where(np.isfinite(img), img, 0.0), light, pixel_size_um=pixel_size_um)
+        return SfsResult(h, light, 1.0, method, tuple(warnings))
+
+    used_method = method
+    z0 = None
+    if light.slant_deg < MIN_SLANT_DEG:
+        # Only |slope| is observable (an eikonal problem without sign): start from a convex
+        # guess so that Gauss-Newton has a non-zero Jacobian.
+        albedo = max(float(np.percentile(img[valid], 99.5)) / np.cos(np.deg2rad(light.slant_deg)), 1e-3)
+        warnings.append(
+            f"light along the view axis (slant {light.slant_deg:.1f}° < {MIN_SLANT_DEG}°): the"
+            " slopes' signs are not observable; fell back to a bright-is-high start (convex"
+            " surfaces)"
+        )
+        used_method = f"{method}+brightness-start"
+    if light.slant_deg > 80.0:
+        warnings.append(
+            f"grazing light (slant {light.slant_deg:.1f}°): cast shadows are not modelled"
+        )
+    rows, cols = img.shape
+    if periodic:
+        dom_img, dom_w = img, valid
+    else:
+        pad = max(8, int(0.08 * max(rows, cols)))
+        shape = (sfft.next_fast_len(rows + pad, real=True), sfft.next_fast_len(cols + pad, real=True))
+        dom_img = np.full(shape, float(np.mean(img[valid])))
+        dom_img[:rows, :cols] = np.where(valid, img, dom_img[0, 0])
+        dom_w = np.zeros(shape, bool)
+        dom_w[:rows, :cols] = valid
+    dom_img = np.where(dom_w, dom_img, float(np.mean(img[valid])))
+    if z0 is None and light.slant_deg < MIN_SLANT_DEG:
+        z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
+    kwargs = {}
+    if method == "accurate":
+        kwargs = dict(coarse_gn=12, mid_gn=8, fine_gn=8, fine_cg=30, tol=0.01)
+    z, albedo = solve_variational(
+        dom_img, dom_w.astype(np.float32), light.vector, albedo, z0=z0, **kwargs
+    )
+    z = z[:rows, :cols].astype(np.float64)
+    gy, gx = np.gradient(z)
+    if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
+        warnings.append("the solver ran away (non-finite or slopes > 50); fell back to a flat height")
+        z = np.zeros_like(z)
+        used_method = f"{used_method}+flat-fallback"
+    height = (z - z.mean()) * pixel_size_um
+    return SfsResult(height, light, float(albedo), used_method, tuple(warnings))
+
+
+# --------------------------------------------------------------------------------------------
+# Physical scale
+
+
+def scale_relief(height, relief_um: float, kind: str = "rms") -> np.ndarray:
+    """Give a relative height map its physical relief.
+
+    Parameters
+    ----------
+    height : ndarray
+        Relative heights (any unit; only the shape counts).
+    relief_um : float
+        The relief in µm: the RMS height about the mean (``kind="rms"``, the default, which is
+        what Kawabata's SMD measures along a line, roughly) or the peak-to-valley height
+        (``kind="pv"``).
+    kind : str
+        ``"rms"`` or ``"pv"``.
+
+    Returns
+    -------
+    ndarray
+        Height in µm, mean 0, with the requested relief. A flat input stays flat (zeros).
+    """
+    if kind not in ("rms", "pv"):
+        raise ValueError(f"relief kind must be 'rms' or 'pv', got {kind!r}")
+    if not np.isfinite(relief_um) or relief_um < 0:
+        raise ValueError(f"relief_um must be finite and >= 0, got {relief_um!r}")
+    h = np.asarray(height, dtype=float)
+    if not np.all(np.isfinite(h)):
+        raise ValueError("height contains NaN or infinite values")
+    h = h - h.mean()
+    size = float(np.sqrt(np.mean(h * h))) if kind == "rms" else float(h.max() - h.min())
+    if size <= 0:
+        return np.zeros_like(h)
+    return h * (relief_um / size)

@@ -90,12 +90,9 @@ class _Problem:
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
         self.shape = (rows, cols)
 
-    offset = 0.0
-    affine = False
-
     def energy(self, z, albedo):
         r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
-        res = albedo * r + self.offset - self.img
+        res = albedo * r - self.img
         return 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(
             np.sum(_lap(z) ** 2)
         )
@@ -124,7 +121,7 @@ class _Problem:
         p, q = _dx(z), _dy(z)
         r, rp, rq = _reflectance(p, q, self.light)
         w = self.w
-        res = albedo * r + self.offset - self.img
+        res = albedo * r - self.img
         ja = albedo * rp
         jb = albedo * rq
         wres = w * res
@@ -184,16 +181,6 @@ class _Problem:
     def fit_albedo(self, z, albedo):
         r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
         w = self.w
-        if self.affine:
-            sw, sr, sr2 = float(w.sum()), float(np.sum(w * r)), float(np.sum(w * r * r))
-            si, sri = float(np.sum(w * self.img)), float(np.sum(w * r * self.img))
-            det = sw * sr2 - sr * sr
-            if det > 1e-12 * sw * sw:
-                a = (sw * sri - sr * si) / det
-                c = (si - a * sr) / sw
-                if np.isfinite(a) and a > 0:
-                    albedo, self.offset = a, c
-            return albedo, self.energy(z, albedo)
         den = float(np.sum(w * r * r))
         if den > 0:
             a = float(np.sum(w * r * self.img)) / den
@@ -225,17 +212,19 @@ def solve_variational(
     light_vec: np.ndarray,
     albedo: float,
     *,
-    lam: float = 2e-3,
+    lam: float = 1e-4,
+    lam_growth: float = 8.0,
     fit_albedo: bool = True,
     z0: np.ndarray | None = None,
-    n_gn: int = 6,
-    max_cg: int = 30,
-    tol: float = 1e-3,
-    min_size: int = 24,
+    coarse_gn: int = 8,
+    mid_gn: int = 4,
     fine_gn: int = 3,
+    coarse_cg: int = 30,
+    fine_cg: int = 15,
+    tol: float = 0.02,
+    min_size: int = 24,
+    max_levels: int = 12,
     workers: int = 2,
-    lam_growth: float = 1.0,
-    affine: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -248,17 +237,26 @@ def solve_variational(
     albedo : float
         Initial albedo.
     lam : float
-        Thin-plate weight (pixel units).
+        Thin-plate weight at full resolution (heights in pixel units).
+    lam_growth : float
+        Factor on `lam` per coarser level (continuation: smooth first, detail last).
     fit_albedo : bool
         Refit the albedo by least squares after each accepted step.
     z0 : ndarray, optional
-        Starting height (pixel units); flat by default.
-    n_gn, fine_gn : int
-        Gauss-Newton steps per coarse level and at full resolution.
-    max_cg, tol : int, float
-        Conjugate-gradient limits per step.
+        Starting height at full resolution (pixel units); flat by default.
+    coarse_gn, mid_gn, fine_gn : int
+        Gauss-Newton steps on the coarse levels, on the half-resolution level and at full
+        resolution.
+    coarse_cg, fine_cg : int
+        Conjugate-gradient iterations per step on the coarse levels and on the two finest.
+    tol : float
+        Relative residual at which conjugate gradients stop (inexact Newton).
     min_size : int
         Coarsest level's smaller side.
+    max_levels : int
+        Most pyramid levels (1 = full resolution only).
+    workers : int
+        FFT threads.
 
     Returns
     -------
@@ -267,7 +265,7 @@ def solve_variational(
     albedo : float
     """
     pyramid = [(image.astype(_F), weight.astype(_F))]
-    while min(pyramid[-1][0].shape) // 2 >= min_size:
+    while min(pyramid[-1][0].shape) // 2 >= min_size and len(pyramid) < max_levels:
         pyramid.append(_downsample(*pyramid[-1]))
     z = None
     if z0 is not None:
@@ -278,9 +276,12 @@ def solve_variational(
         img, w = pyramid[level]
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
         prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers)
-        prob.affine = affine
-        prob.offset = offset if level < len(pyramid) - 1 else 0.0
-        steps = fine_gn if level == 0 else n_gn
-        z, albedo = prob.solve(z, albedo, steps, max_cg, tol, fit_albedo)
-        offset = prob.offset
+        steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
+        cg = coarse_cg if level > 1 else fine_cg
+        z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo)
     return z - z.mean(), albedo
+
+
+def energy(image, weight, light_vec, albedo, z, lam=1e-4) -> float:
+    """The shading energy of height `z` (pixel units) on the periodic domain."""
+    return _Problem(image, weight, light_vec, lam, 1).energy(z.astype(_F), albedo)

@@ -126,7 +126,7 @@ def _direction_powers(
     # weighting, which vanishes like f^2 at 0 Hz) so the circular transform sees no step.
     ramp = np.linspace(0.0, 1.0, n_a)
     heights -= heights[:, :1] + (heights[:, -1:] - heights[:, :1]) * ramp
-    spectrum = scipy.fft.rfft(heights, axis=1, workers=1)
+    spectrum = scipy.fft.rfft(heights, axis=1, workers=2)
     k = scipy.fft.rfftfreq(n_a, d=px)  # cycles/mm
     length_mm = n_a * px
     out = np.empty((speeds.size, 2, nodes.shape[0]))
@@ -136,8 +136,9 @@ def _direction_powers(
         step = max(1, int(round(across_spacing_mm(sigma, px, s, model) / px)))
         lines = spectrum[::step, :n_keep]
         spacing_b = step * px
-        n_out = scipy.fft.next_fast_len(max(2 * n_keep, int(np.ceil(length_mm * 2048.0 / s))))
-        n_out = min(n_out, n_a) if n_a >= 2 * n_keep else n_out
+        # |z|^2 of an analytic signal with bins 0..n_keep only holds frequencies within
+        # +-n_keep bins, so 2 n_keep + 1 samples per line represent it exactly.
+        n_out = scipy.fft.next_fast_len(2 * n_keep + 1)
         da = length_mm / n_out
         # frame window along the line (in space: time offset x speed), normalised, circular
         offsets = (np.arange(n_out) - n_out // 2) * da / s
@@ -148,15 +149,20 @@ def _direction_powers(
         wp, wnp = model.weights(f[:n_keep])
         res = resolution_weight(k[:n_keep], px)
         wp, wnp = wp * res, wnp * res
+        # After the window the power is smooth along the line on the scale of the window and
+        # the footprint: keep a quarter of that as the along-line step before going across.
+        smooth_mm = max(sigma, s * settings.frame_ms / 1000.0)
+        q = max(1, int(smooth_mm / 4.0 / da))
+        coords = np.vstack([(b_nodes - b0) / spacing_b, (a_nodes - a0) / (da * q)])
         for ci, w in enumerate((wp, wnp)):
             z_spec = np.zeros((lines.shape[0], n_out), dtype=complex)
             z_spec[:, :n_keep] = lines * (2.0 * w * n_out / n_a)
             z_spec[:, 0] = 0.0
-            power = np.abs(scipy.fft.ifft(z_spec, axis=1)) ** 2
-            power = scipy.fft.irfft(scipy.fft.rfft(power, axis=1) * kern_f, n=n_out, axis=1)
+            z = scipy.fft.ifft(z_spec, axis=1, workers=2)
+            power = z.real**2 + z.imag**2
+            power = scipy.fft.irfft(scipy.fft.rfft(power, axis=1, workers=2) * kern_f, n=n_out, axis=1, workers=2)[:, ::q]
             if gw.size > 1:
                 power = ndimage.convolve1d(power, gw, axis=0, mode="nearest")
-            coords = np.vstack([(b_nodes - b0) / spacing_b, (a_nodes - a0) / da])
             out[si, ci] = ndimage.map_coordinates(power, coords, order=1, mode="nearest")
     return np.maximum(out, 0.0)
 
@@ -169,6 +175,7 @@ def build_tables(
     speeds_mm_s: np.ndarray,
     grid: TableGrid,
     workers: int = 2,
+    cache: dict | None = None,
 ) -> Tables:
     """Compute the amplitude tables on `grid` for every direction and speed node.
 
@@ -183,6 +190,9 @@ def build_tables(
     grid : TableGrid
     workers : int
         Directions computed in parallel threads.
+    cache : dict, optional
+        Channel powers already computed on this grid, keyed by (direction, speed); filled in,
+        so refining the nodes only computes the new ones.
     """
     directions = np.asarray(directions_deg, dtype=float)
     speeds = np.asarray(speeds_mm_s, dtype=float)
@@ -191,12 +201,21 @@ def build_tables(
     if speeds.ndim != 1 or speeds.size == 0 or np.any(np.diff(speeds) <= 0) or speeds[0] <= 0 or not np.all(np.isfinite(speeds)):
         raise ValueError("speeds must be positive, finite and strictly increasing")
     nodes = grid.nodes_mm().reshape(-1, 2)
+    cache = {} if cache is None else cache
 
-    def one(d: float) -> np.ndarray:
-        return _direction_powers(surface, model, settings, nodes, d, speeds)
+    def key(d: float, s: float) -> tuple[float, float]:
+        return (round(float(d), 9), round(float(s), 9))
+
+    def one(d: float) -> None:
+        missing = np.array([s for s in speeds if key(d, s) not in cache])
+        if missing.size:
+            powers = _direction_powers(surface, model, settings, nodes, d, missing)
+            for s, pw in zip(missing, powers):
+                cache[key(d, s)] = pw
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        powers = np.stack(list(pool.map(one, directions)))  # [n_dir, n_speed, 2, n_nodes]
+        list(pool.map(one, directions))
+    powers = np.stack([np.stack([cache[key(d, s)] for s in speeds]) for d in directions])  # [nd, ns, 2, n]
     shape = (directions.size, speeds.size) + grid.shape
     ip = np.sqrt(powers[:, :, 0]).reshape(shape)
     inp = np.sqrt(powers[:, :, 1]).reshape(shape)

@@ -203,7 +203,10 @@ class ControllerEmulator:
             fault = self._faults.popleft()
             if fault == "timeout":
                 # The host waits the whole timeout before giving up.
-                self.clock.sleep_until(self.clock.now() + timeout_ms * 1e-3)
+                if getattr(self.clock, "virtual", False):
+                    self.clock.advance(timeout_ms * 1e-3)
+                else:
+                    self.clock.sleep_until(self.clock.now() + timeout_ms * 1e-3)
                 self._raise(_TIMEOUT, usb.core.USBTimeoutError)
             if fault == "stall":
                 self.halted = True

@@ -320,8 +320,8 @@ class Player:
                                  float(np.median(latency_us[-40:])))
                         next_log = now + 1.0
                     k += 1
-                    if live and self.source.finished:
-                        s.stopped_by = "end of live input"
+                    if live and self.source.finished and state.gain == 0.0:
+                        s.stopped_by = "end of live input (faded out)"
                         break
                 if self.max_frames is not None and k >= self.max_frames:
                     s.stopped_by = "frame limit"

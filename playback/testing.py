@@ -66,10 +66,15 @@ def write_test_asset(
     format_version: str = "1.0",
     height_shape: tuple[int, int] = (16, 16),
 ) -> Path:
-    """Write a complete v1 asset whose tables sample `fn` (defaults: 8 mm periodic, 0.25 mm grid)."""
+    """Write a complete v1 asset whose tables sample `fn`.
+
+    Defaults: directions every 7.5°, 21 speeds 10-320 mm/s, 32 x 32 nodes at 0.25 mm (one 8 mm
+    period of :func:`smooth_field`), periodic. For that field the interpolation error stays
+    below 1.5 % (the stated ``max_rel_error`` is 2 %).
+    """
     path = Path(path)
-    direction = np.arange(0.0, 180.0, 15.0) if direction_deg is None else np.asarray(direction_deg, float)
-    speed = np.geomspace(10.0, 320.0, 11) if speed_mm_s is None else np.asarray(speed_mm_s, float)
+    direction = np.arange(0.0, 180.0, 7.5) if direction_deg is None else np.asarray(direction_deg, float)
+    speed = np.geomspace(10.0, 320.0, 21) if speed_mm_s is None else np.asarray(speed_mm_s, float)
     basis = np.array([[0.25, 0.0], [0.0, 0.25]]) if grid_basis_mm is None else np.asarray(grid_basis_mm, float)
     origin = np.asarray(origin_mm, dtype=np.float64)
     a40, a320 = make_table_arrays(fn, direction, speed, origin, basis, n_j, n_i)

@@ -176,14 +176,15 @@ def test_colour_becomes_rec601_luma_and_alpha_is_dropped(tmp_path):
             ("rgb16.tif", tiff_bytes(rgb), 3)):
         image = read_image(write(tmp_path, name, data))
         assert image.channels == channels and image.bit_depth == 16, name
-        np.testing.assert_allclose(image.grey, expected, rtol=0, atol=1e-12, err_msg=name)
+        # Within 5 % of one 16-bit step: the 16 bits survive the colour conversion.
+        np.testing.assert_allclose(image.grey, expected, rtol=0, atol=0.05 / 65535, err_msg=name)
 
 
 def test_pure_primaries_give_their_luma_weights_in_every_format(tmp_path):
     for weight, bgr in ((0.299, (0, 0, 255)), (0.587, (0, 255, 0)), (0.114, (255, 0, 0))):
         pixels = np.zeros((16, 16, 3), np.uint8)
         pixels[:] = bgr
-        for ext, tol in ((".png", 1e-12), (".bmp", 1e-12), (".tif", 1e-12), (".jpg", 1.5 / 255)):
+        for ext, tol in ((".png", 1e-6), (".bmp", 1e-6), (".tif", 1e-6), (".jpg", 1.5 / 255)):
             image = read_image(write(tmp_path, "p" + ext, encode(ext, pixels)))
             assert abs(image.grey.mean() - weight) <= tol, (ext, weight)
 
@@ -194,7 +195,7 @@ def test_palette_and_grey_alpha_png(tmp_path):
     image = read_image(write(tmp_path, "pal.png", png_bytes(index, 3, plte=palette)))
     expected = np.array([0.299, 0.587, 0.114])[index]
     assert image.channels == 3
-    np.testing.assert_allclose(image.grey, expected, atol=1e-12)
+    np.testing.assert_allclose(image.grey, expected, atol=1e-6)
     grey_alpha = np.stack([index * 100, 255 - index * 100], axis=2)
     image = read_image(write(tmp_path, "la.png", png_bytes(grey_alpha, 4)))
     assert image.channels == 2
@@ -675,7 +676,7 @@ def test_write_exr_refuses_bad_channels(tmp_path):
 
 # --------------------------------------------------------------------------- fuzzing
 
-FUZZ_EXAMPLES = int(os.environ.get("HAPTEX_FUZZ_EXAMPLES", "120"))
+FUZZ_EXAMPLES = int(os.environ.get("HAPTEX_FUZZ_EXAMPLES", "250"))
 FUZZ = settings(max_examples=FUZZ_EXAMPLES, deadline=None, database=None,
                 derandomize=os.environ.get("HAPTEX_FUZZ_RANDOM") != "1",
                 suppress_health_check=list(HealthCheck))

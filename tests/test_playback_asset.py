@@ -18,7 +18,7 @@ def asset_path(tmp_path):
 def test_reads_layout_and_values(asset_path):
     a = read_asset(asset_path)
     t = a.tables
-    assert t.shape == (12, 11, 32, 32)
+    assert t.shape == (24, 21, 32, 32)
     assert a.n_contactors == 24
     np.testing.assert_allclose(a.contactors_mm, haptex24_layout_mm())
     # Node [d, s, j, i] holds the field at origin + i g_i + j g_j.
@@ -55,14 +55,14 @@ def _set(name, value):
     (lambda f: f["tables"].__delitem__("a320"), "missing dataset /tables/a320"),
     (lambda f: f.__delitem__("scene"), "missing group /scene"),
     (lambda f: f["tables"].attrs.__delitem__("grid_basis_mm"), "grid_basis_mm"),
-    (_set("tables/a40", np.full((12, 11, 32, 32), np.nan, np.float32)), "NaN"),
-    (_set("tables/a320", -np.ones((12, 11, 32, 32), np.float32)), "negative"),
-    (_set("tables/a40", np.ones((12, 11, 32), np.float32)), "must have 4 dims"),
-    (_set("tables/a320", np.ones((12, 11, 32, 31), np.float32)), "differs from a40"),
-    (_set("tables/speed_mm_s", np.geomspace(320, 10, 11)), "strictly ascending"),
-    (_set("tables/speed_mm_s", np.linspace(0, 10, 11)), "> 0"),
-    (_set("tables/direction_deg", np.arange(0, 360, 30.0)), "[0, 180)"),
-    (_set("tables/direction_deg", np.arange(0, 165, 15.0)), "12 directions"),
+    (_set("tables/a40", np.full((24, 21, 32, 32), np.nan, np.float32)), "NaN"),
+    (_set("tables/a320", -np.ones((24, 21, 32, 32), np.float32)), "negative"),
+    (_set("tables/a40", np.ones((24, 21, 32), np.float32)), "must have 4 dims"),
+    (_set("tables/a320", np.ones((24, 21, 32, 31), np.float32)), "differs from a40"),
+    (_set("tables/speed_mm_s", np.geomspace(320, 10, 21)), "strictly ascending"),
+    (_set("tables/speed_mm_s", np.linspace(0, 10, 21)), "> 0"),
+    (_set("tables/direction_deg", np.arange(0, 360, 15.0)), "[0, 180)"),
+    (_set("tables/direction_deg", np.arange(0, 165, 7.5)), "24 directions"),
     (_set("scene/contactors_mm", np.zeros((24, 3))), "contactors_mm"),
     (lambda f: f["tables"].attrs.__setitem__("grid_basis_mm", np.array([[1.0, 0], [2.0, 0]])), "singular"),
     (lambda f: f["scene"].attrs.__setitem__("resolved", "{not json"), "not valid JSON"),

@@ -66,8 +66,8 @@ def test_channel_map():
     doc["contactors"] = {"count": 3, "n_channels": 8, "channel": [7, 0, 4]}
     p = profile_from_dict(doc)
     c40, _, _, _ = p.to_codes(np.array([2.5, 5.0, 7.5]), np.zeros(3))
-    one_volt = round(4095 / 40)
-    assert list(c40) == [2 * one_volt, 0, 0, 0, 3 * one_volt, 0, 0, one_volt]
+    code = [round(volts * 4095 / 40) for volts in (1.0, 2.0, 3.0)]
+    assert list(c40) == [code[1], 0, 0, 0, code[2], 0, 0, code[0]]
 
 
 def _variants():

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import logging
 import math
 import time
 
@@ -49,7 +50,8 @@ def test_sweep_state():
             parse_sweep(bad)
 
 
-def test_csv_bad_samples(tmp_path, caplog):
+def test_csv_bad_samples(tmp_path, caplog, monkeypatch):
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
     lines = ["t_s,u_mm,v_mm,phi_deg"]
     t = np.arange(0, 1.0, 0.01)
     rows = [[ti, 50.0 * ti, 0.0, 0.0] for ti in t]

@@ -1,0 +1,177 @@
+"""The single writer of tactile assets (HDF5, format v1).
+
+Layout (public contract; ``schemas/asset.schema.json``; read by :mod:`playback.asset`):
+
+* root attrs ``format = "haptex-tactile-asset"``, ``format_version = "1.0"``, ``generator``,
+  ``source_name``, ``source_kind``;
+* ``/surface/height`` float32 [ny, nx] µm; ``/surface`` attrs ``pixel_size_um``, ``periodic``
+  and, when periodic, ``period_t1_px``, ``period_t2_px``, ``cell_origin_px`` (the repeat the
+  sampler uses); ``/surface/lattice`` (only when a lattice was found in a photograph) attrs
+  ``t1_px``, ``t2_px``, ``confidence``; optional ``/surface/roughness`` and ``/surface/friction``;
+* ``/perception``: ``frequency_hz``, ``threshold_p_um``, ``threshold_np_um`` (the curves used,
+  at their table nodes), ``kernel_frequency_hz``, ``kernel_h40``, ``kernel_h320``; attrs
+  ``base_frequencies_hz``, ``summation_exponent``, ``footprint_sigma_mm``, band and analysis
+  parameters, ``threshold_provenance``;
+* ``/tables/a40``, ``/tables/a320`` float32 [n_direction, n_speed, n_j, n_i] µm,
+  ``/tables/direction_deg``, ``/tables/speed_mm_s``; attrs ``frame_ms``, ``periodic``,
+  ``origin_mm``, ``grid_basis_mm``, ``grid_spacing_mm``, error statistics;
+* ``/scene`` attrs ``text``, ``resolved`` (JSON); dataset ``contactors_mm`` [n, 2];
+* ``/report`` attr ``json``: the compile report (warnings, decisions, measured errors).
+
+Writes are atomic (temporary file in the same folder, then rename) and deterministic
+(no timestamps: ``track_times=False``; fixed compression settings).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from haptex_compile import __version__
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.frame_analysis import ANALYSIS_RATE_HZ, AnalysisSettings
+from haptex_compile.scene import Scene
+from haptex_compile.surface import Surface
+from haptex_compile.thresholds import SMOOTHING_HZ
+from haptex_compile.tables import Tables
+
+FORMAT_NAME = "haptex-tactile-asset"
+FORMAT_VERSION = "1.0"
+
+
+@dataclass
+class AssetContent:
+    """Everything that goes into an asset."""
+
+    surface: Surface
+    tables: Tables
+    model: TwoColourModel
+    settings: AnalysisSettings
+    scene: Scene
+    source_name: str
+    source_kind: str
+    report: dict[str, Any] = field(default_factory=dict)
+    lattice: dict[str, Any] | None = None  # t1_px, t2_px, confidence (photos)
+    roughness: dict[str, Any] | None = None  # hurst, dimension, rms_um
+    friction: dict[str, np.ndarray] | None = None
+    table_errors: dict[str, float] = field(default_factory=dict)
+    source_image: np.ndarray | None = None  # grey image the heights came from (for inspect)
+
+
+def _dataset(group: h5py.Group, name: str, data: np.ndarray, compress: bool = False) -> h5py.Dataset:
+    data = np.ascontiguousarray(data)
+    kwargs: dict[str, Any] = {"track_times": False}
+    if compress and data.size > 1024:
+        kwargs.update(compression="gzip", compression_opts=4, shuffle=True, chunks=True)
+    return group.create_dataset(name, data=data, **kwargs)
+
+
+def write_asset(path: str | Path, content: AssetContent) -> None:
+    """Write `content` to `path` atomically (temp file + rename); an error leaves no file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w", track_order=False) as f:
+            _fill(f, content)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _fill(f: h5py.File, c: AssetContent) -> None:
+    f.attrs["format"] = FORMAT_NAME
+    f.attrs["format_version"] = FORMAT_VERSION
+    f.attrs["generator"] = f"haptex {__version__}"
+    f.attrs["source_name"] = c.source_name
+    f.attrs["source_kind"] = c.source_kind
+
+    s = f.create_group("surface", track_order=False)
+    _dataset(s, "height", np.asarray(c.surface.height_um, dtype=np.float32), compress=True)
+    s.attrs["pixel_size_um"] = float(c.surface.pixel_size_um)
+    s.attrs["periodic"] = bool(c.surface.periodic)
+    if c.surface.periodic:
+        s.attrs["period_t1_px"] = np.asarray(c.surface.t1_px, dtype=np.float64)
+        s.attrs["period_t2_px"] = np.asarray(c.surface.t2_px, dtype=np.float64)
+        s.attrs["cell_origin_px"] = c.surface.origin_px().astype(np.float64)
+    if c.lattice is not None:
+        g = s.create_group("lattice")
+        for key, value in c.lattice.items():
+            g.attrs[key] = value
+    if c.roughness is not None:
+        g = s.create_group("roughness")
+        for key, value in c.roughness.items():
+            g.attrs[key] = value
+    if c.friction is not None:
+        g = s.create_group("friction")
+        for key, value in c.friction.items():
+            _dataset(g, key, np.asarray(value, dtype=np.float32), compress=True)
+    if c.source_image is not None:
+        _dataset(s, "source_image", np.asarray(c.source_image, dtype=np.float32), compress=True)
+
+    p = f.create_group("perception")
+    th = c.model.thresholds
+    _dataset(p, "frequency_hz", np.asarray(th.frequency_hz, dtype=np.float64))
+    _dataset(p, "threshold_p_um", np.asarray(th.p_um, dtype=np.float64))
+    _dataset(p, "threshold_np_um", np.asarray(th.np_um, dtype=np.float64))
+    kf = np.geomspace(1.0, 1000.0, 301)
+    h40, h320 = c.model.kernels(kf)
+    _dataset(p, "kernel_frequency_hz", kf)
+    _dataset(p, "kernel_h40", h40)
+    _dataset(p, "kernel_h320", h320)
+    p.attrs["threshold_provenance"] = th.provenance
+    p.attrs["threshold_smoothing_hz"] = SMOOTHING_HZ
+    p.attrs["base_frequencies_hz"] = np.asarray(c.model.base_frequencies_hz, dtype=np.float64)
+    p.attrs["summation_exponent"] = float(c.model.summation_exponent)
+    p.attrs["band_low_hz"] = c.model.band.low_hz
+    p.attrs["band_high_pass_hz"] = c.model.band.high_pass_hz
+    p.attrs["band_high_stop_hz"] = c.model.band.high_stop_hz
+    p.attrs["footprint_sigma_mm"] = float(c.settings.footprint_sigma_mm)
+    p.attrs["frame_ms"] = float(c.settings.frame_ms)
+    p.attrs["margin_ms"] = float(c.settings.margin_ms)
+    p.attrs["analysis_rate_hz"] = ANALYSIS_RATE_HZ
+    p.attrs["condition_number"] = c.model.condition_number()
+
+    t = f.create_group("tables")
+    tab = c.tables
+    _dataset(t, "a40", np.asarray(tab.a40, dtype=np.float32), compress=True)
+    _dataset(t, "a320", np.asarray(tab.a320, dtype=np.float32), compress=True)
+    _dataset(t, "direction_deg", np.asarray(tab.direction_deg, dtype=np.float64))
+    _dataset(t, "speed_mm_s", np.asarray(tab.speed_mm_s, dtype=np.float64))
+    _dataset(t, "out_of_gamut", np.asarray(tab.out_of_gamut, dtype=np.float32), compress=True)
+    t.attrs["frame_ms"] = float(c.settings.frame_ms)
+    t.attrs["periodic"] = bool(tab.grid.periodic)
+    t.attrs["origin_mm"] = np.asarray(tab.grid.origin_mm, dtype=np.float64)
+    t.attrs["grid_basis_mm"] = np.asarray(tab.grid.basis_mm, dtype=np.float64)
+    t.attrs["grid_spacing_mm"] = float(tab.grid.spacing_mm)
+    t.attrs["interpolation"] = (
+        "direction: linear, periodic over 180 deg; speed: linear in log(speed), clamped above the top node, "
+        "fading linearly to 0 at speed 0 below the lowest; space: bilinear in the node grid, wrapping when periodic, "
+        "clamped at the edge otherwise (docs/interpolation.md)"
+    )
+    for key, value in sorted(c.table_errors.items()):
+        t.attrs[key] = value
+
+    sc = f.create_group("scene")
+    sc.attrs["text"] = c.scene.text
+    sc.attrs["resolved"] = c.scene.resolved_json()
+    _dataset(sc, "contactors_mm", np.asarray(c.scene.contactors_mm, dtype=np.float64))
+
+    r = f.create_group("report")
+    r.attrs["json"] = json.dumps(c.report, sort_keys=True, default=_jsonable)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    raise TypeError(f"not JSON-serialisable: {type(value).__name__}")

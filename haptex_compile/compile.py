@@ -1,0 +1,261 @@
+"""The compiler's pipeline: source -> surface -> tables (error-controlled) -> asset."""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from haptex_compile.asset_writer import AssetContent, write_asset
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.errors import InputError
+from haptex_compile.frame_analysis import AnalysisSettings
+from haptex_compile.render import point_intensities, straight_path
+from haptex_compile.scene import Scene
+from haptex_compile.sources import SourceOptions, SourceResult, load_source
+from haptex_compile.surface import Surface
+from haptex_compile.tables import Tables, build_tables, table_grid
+
+LOG = logging.getLogger("haptex.compile")
+CHECK_SAMPLES_PER_FAMILY = 16
+MAX_REFINEMENTS = 3
+
+
+@dataclass
+class NodePlan:
+    """Table nodes: directions (deg, in [0, 180)), speeds (mm/s), grid spacing (mm)."""
+
+    directions_deg: np.ndarray
+    speeds_mm_s: np.ndarray
+    spacing_mm: float
+    explicit_directions: bool = False
+    explicit_speeds: bool = False
+    explicit_spacing: bool = False
+
+
+def model_for(scene: Scene) -> TwoColourModel:
+    """The two-colour model a scene asks for (user threshold curves when given)."""
+    from haptex_compile.thresholds import idealised_thresholds
+
+    if scene.thresholds_csv:
+        from haptex_compile.io_thresholds import read_thresholds_csv
+
+        curves = read_thresholds_csv(scene.thresholds_csv)
+    else:
+        curves = idealised_thresholds()
+    try:
+        return TwoColourModel(thresholds=curves, base_frequencies_hz=scene.base_frequencies_hz,
+                              summation_exponent=scene.summation_exponent)
+    except ValueError as exc:
+        raise InputError(scene.thresholds_csv or "scene", str(exc)) from None
+
+
+def settings_for(scene: Scene) -> AnalysisSettings:
+    return AnalysisSettings(frame_ms=scene.frame_ms, footprint_sigma_mm=scene.footprint_sigma_mm)
+
+
+def _direction_nodes(lo: float, hi: float, step: float) -> np.ndarray:
+    if hi - lo >= 180.0 - 1e-9:  # all directions: periodic over 180 deg
+        n = max(1, int(math.ceil(180.0 / step)))
+        return np.arange(n) * (180.0 / n)
+    n = max(1, int(math.ceil((hi - lo) / step)))
+    return np.unique(np.round(np.mod(np.linspace(lo, hi, n + 1), 180.0), 9))
+
+
+def _speed_nodes(lo: float, hi: float, ratio: float) -> np.ndarray:
+    n = max(1, int(math.ceil(math.log(hi / lo) / math.log(ratio))))
+    return np.geomspace(lo, hi, n + 1)
+
+
+def initial_plan(scene: Scene, surface: Surface) -> NodePlan:
+    """Starting nodes: explicit lists as given, else coarse nodes the error check refines."""
+    sigma = scene.footprint_sigma_mm
+    spacing = scene.grid_spacing_mm or (sigma if sigma > 0 else 2 * surface.pixel_size_mm)
+    spacing = max(spacing, surface.pixel_size_mm)
+    directions = (np.asarray(scene.directions_deg) if scene.directions_deg is not None
+                  else _direction_nodes(*scene.direction_range_deg, step=30.0))
+    speeds = (np.asarray(scene.speeds_mm_s) if scene.speeds_mm_s is not None
+              else _speed_nodes(*scene.speed_range_mm_s, ratio=1.6))
+    return NodePlan(directions, speeds, spacing, scene.directions_deg is not None,
+                    scene.speeds_mm_s is not None, scene.grid_spacing_mm is not None)
+
+
+def _as_player_tables(tables: Tables, frame_ms: float):
+    from playback.asset import Tables as PlayerTables
+
+    g = tables.grid
+    return PlayerTables(a40=tables.a40, a320=tables.a320, direction_deg=tables.direction_deg,
+                        speed_mm_s=tables.speed_mm_s, origin_mm=g.origin_mm, grid_basis_mm=g.basis_mm,
+                        frame_ms=frame_ms, periodic=g.periodic)
+
+
+def relative_errors(model: TwoColourModel, a40_t, a320_t, a40_r, a320_r) -> np.ndarray:
+    """Relative error of table amplitudes against reference ones, in threshold units.
+
+    Each colour is divided by its channel's threshold at its base frequency (T_np(40), T_p(320)),
+    so the two colours count as felt; error = |difference| / |reference| of that 2-vector
+    (with a floor of 1 % of the reference level over all samples, so silence does not divide by 0).
+    """
+    f40, f320 = model.base_frequencies_hz
+    s40 = 1.0 / float(model.thresholds.np_(f40))
+    s320 = 1.0 / float(model.thresholds.p(f320))
+    diff = np.hypot((np.asarray(a40_t) - a40_r) * s40, (np.asarray(a320_t) - a320_r) * s320)
+    ref = np.hypot(np.asarray(a40_r) * s40, np.asarray(a320_r) * s320)
+    floor = 0.01 * float(np.sqrt(np.mean(ref**2))) + 1e-12
+    return diff / np.maximum(ref, floor)
+
+
+def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
+                 seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY) -> dict[str, Any]:
+    """Measure table playback against the reference renderer at random points between nodes.
+
+    Three families of samples isolate where the error comes from: directions halfway between
+    nodes, speeds halfway (geometric mean) between nodes, and random positions at node
+    directions and speeds; the union gives the stored statistics.
+    """
+    rng = np.random.default_rng(seed)
+    player = _as_player_tables(tables, settings.frame_ms)
+    grid = tables.grid
+    dirs, speeds = tables.direction_deg, tables.speed_mm_s
+    nj, ni = grid.shape
+
+    def random_position() -> np.ndarray:
+        fi, fj = rng.uniform(0, ni - 1), rng.uniform(0, nj - 1)
+        return grid.origin_mm + fi * grid.basis_mm[0] + fj * grid.basis_mm[1]
+
+    def mid_direction() -> float:
+        if dirs.size == 1:
+            return float(dirs[0] + rng.uniform(0, 180))
+        k = rng.integers(dirs.size)
+        nxt = dirs[(k + 1) % dirs.size] + (180.0 if k + 1 == dirs.size else 0.0)
+        return float(0.5 * (dirs[k] + nxt))
+
+    def mid_speed() -> float:
+        if speeds.size == 1:
+            return float(speeds[0])
+        k = rng.integers(speeds.size - 1)
+        return float(np.sqrt(speeds[k] * speeds[k + 1]))
+
+    families: dict[str, list[float]] = {"direction": [], "speed": [], "position": []}
+    for family in families:
+        for _ in range(per_family):
+            p = random_position()
+            d = mid_direction() if family == "direction" else float(rng.choice(dirs))
+            s = mid_speed() if family == "speed" else float(rng.choice(speeds))
+            ip, inp = point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0)
+            ref = model.decompose(ip, inp)
+            a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
+            families[family].append((float(a40[0]), float(a320[0]), float(ref.a40), float(ref.a320)))
+    stats: dict[str, Any] = {}
+    all_rows = np.array([row for rows in families.values() for row in rows])
+    errs = relative_errors(model, all_rows[:, 0], all_rows[:, 1], all_rows[:, 2], all_rows[:, 3])
+    offset = 0
+    for family, rows in families.items():
+        e = errs[offset: offset + len(rows)]
+        offset += len(rows)
+        stats[f"rms_rel_error_{family}"] = float(np.sqrt(np.mean(e**2)))
+    stats["rms_rel_error"] = float(np.sqrt(np.mean(errs**2)))
+    stats["max_rel_error"] = float(errs.max())
+    stats["p95_rel_error"] = float(np.quantile(errs, 0.95))
+    stats["n_check_samples"] = int(errs.size)
+    return stats
+
+
+def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
+                         seed: int = 0, progress: Callable[[str], None] | None = None) -> tuple[Tables, dict[str, Any], NodePlan]:
+    """Build tables, measure their error and refine nodes until the scene's tolerance is met."""
+    plan = initial_plan(scene, surface)
+    tol = scene.tolerance
+    history = []
+    caches: dict[float, dict] = {}
+    for attempt in range(MAX_REFINEMENTS + 1):
+        grid = table_grid(surface, plan.spacing_mm)
+        cache = caches.setdefault(round(plan.spacing_mm, 12), {})
+        tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache)
+        stats = check_tables(surface, model, settings, tables, seed=seed + attempt)
+        history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
+                        "spacing_mm": float(plan.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
+                        "max_rel_error": stats["max_rel_error"]})
+        if progress:
+            progress(f"tables {tables.a40.shape}: rms error {stats['rms_rel_error']:.3%}")
+        if stats["rms_rel_error"] <= tol:
+            break
+        # Refine the axis whose family shows the largest error (explicit nodes stay as given).
+        order = sorted(("direction", "speed", "position"), key=lambda k: -stats[f"rms_rel_error_{k}"])
+        refined = False
+        for axis in order:
+            if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72:
+                lo, hi = scene.direction_range_deg
+                step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, plan.directions_deg.size) / 2
+                plan.directions_deg = _direction_nodes(lo, hi, step)
+                refined = True
+            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64:
+                lo, hi = scene.speed_range_mm_s
+                ratio = (hi / lo) ** (1.0 / max(1, plan.speeds_mm_s.size - 1))
+                plan.speeds_mm_s = _speed_nodes(lo, hi, math.sqrt(ratio))
+                refined = True
+            elif axis == "position" and not plan.explicit_spacing and plan.spacing_mm > 2 * surface.pixel_size_mm:
+                plan.spacing_mm = plan.spacing_mm / 2
+                refined = True
+            if refined:
+                break
+        if not refined:
+            break
+    stats["tolerance"] = tol
+    stats["refinements"] = history
+    stats["tolerance_met"] = bool(stats["rms_rel_error"] <= tol)
+    return tables, stats, plan
+
+
+def compile_source(spec: str, out_path: str | Path, scene: Scene, options: SourceOptions,
+                   exr_path: str | Path | None = None, exr_speed: float = 80.0, exr_direction: float = 0.0,
+                   progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Compile one input into an asset at `out_path`; returns the compile report."""
+    source = load_source(spec, options)
+    return compile_surface(source, out_path, scene, options.seed, exr_path, exr_speed, exr_direction, progress)
+
+
+def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, seed: int = 0,
+                    exr_path: str | Path | None = None, exr_speed: float = 80.0, exr_direction: float = 0.0,
+                    progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    model = model_for(scene)
+    settings = settings_for(scene)
+    tables, stats, plan = build_checked_tables(source.surface, model, settings, scene, seed=seed, progress=progress)
+    report = dict(source.report)
+    report["tables"] = {k: v for k, v in stats.items()}
+    report["out_of_gamut_fraction"] = float(np.mean(tables.out_of_gamut > 0))
+    report["out_of_gamut_max"] = float(tables.out_of_gamut.max())
+    if not stats["tolerance_met"]:
+        LOG.warning("%s: tables reach %.2f%% RMS error, above the tolerance %.2f%% (node limits reached)",
+                    source.name, 100 * stats["rms_rel_error"], 100 * scene.tolerance)
+    table_errors = {k: stats[k] for k in ("max_rel_error", "rms_rel_error", "p95_rel_error", "n_check_samples",
+                                           "rms_rel_error_direction", "rms_rel_error_speed", "rms_rel_error_position")}
+    table_errors["tolerance"] = scene.tolerance
+    table_errors["error_metric"] = "|a_table - a_reference| / |a_reference|, colours in threshold units (T_np(40), T_p(320))"
+    content = AssetContent(surface=source.surface, tables=tables, model=model, settings=settings, scene=scene,
+                           source_name=Path(source.name).name if source.kind != "brownian" else source.name,
+                           source_kind=source.kind, report=report, lattice=source.lattice,
+                           roughness=source.roughness, friction=source.friction, table_errors=table_errors,
+                           source_image=source.source_image)
+    write_asset(out_path, content)
+    if exr_path is not None:
+        export_exr(exr_path, source.surface, tables, exr_speed, exr_direction, settings.frame_ms)
+    return report
+
+
+def export_exr(path: str | Path, surface: Surface, tables: Tables, speed_mm_s: float, direction_deg: float,
+               frame_ms: float) -> None:
+    """Height plus a40/a320 maps (for one speed and direction) on the height map's pixel grid."""
+    from haptex_compile.io_exr import write_exr
+
+    player = _as_player_tables(tables, frame_ms)
+    ny, nx = surface.shape
+    v, u = np.mgrid[0:ny, 0:nx] * surface.pixel_size_mm
+    a40, a320, _ = player.interpolator(u.ravel(), v.ravel(), np.full(u.size, speed_mm_s), np.full(u.size, direction_deg))
+    write_exr(path, {"height": np.asarray(surface.height_um, np.float32),
+                     "a40": a40.reshape(ny, nx).astype(np.float32), "a320": a320.reshape(ny, nx).astype(np.float32)},
+              attributes={"haptex_speed_mm_s": f"{speed_mm_s:g}", "haptex_direction_deg": f"{direction_deg:g}",
+                          "haptex_units": "height, a40, a320 in micrometres"})

@@ -1,0 +1,53 @@
+"""Reading scene TOML files, validated against ``schemas/scene.schema.json``."""
+from __future__ import annotations
+
+import json
+import tomllib
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+import jsonschema
+
+from haptex_compile.errors import InputError
+from haptex_compile.scene import Scene, scene_from_dict
+
+
+@lru_cache(maxsize=None)
+def load_schema(name: str) -> dict:
+    """A JSON Schema shipped in ``schemas/`` (repository) or the package's copy."""
+    repo = Path(__file__).resolve().parents[1] / "schemas" / name
+    if repo.is_file():
+        return json.loads(repo.read_text(encoding="utf-8"))
+    return json.loads(resources.files("haptex_compile").joinpath(f"schemas/{name}").read_text(encoding="utf-8"))
+
+
+def _where(error: jsonschema.ValidationError) -> str:
+    return ".".join(str(p) for p in error.absolute_path) or "scene"
+
+
+def parse_scene(text: str, source: str | Path, base_dir: str | None = None) -> Scene:
+    """Parse and validate scene TOML text; errors are one line naming `source`."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(source, f"not valid TOML ({exc})") from None
+    validator = jsonschema.Draft202012Validator(load_schema("scene.schema.json"))
+    errors = sorted(validator.iter_errors(data), key=lambda e: list(e.absolute_path))
+    if errors:
+        err = errors[0]
+        raise InputError(source, f"{_where(err)}: {err.message}")
+    try:
+        return scene_from_dict(data, text=text, base_dir=base_dir)
+    except ValueError as exc:
+        raise InputError(source, str(exc)) from None
+
+
+def read_scene(path: str | Path) -> Scene:
+    """Read a scene TOML file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read scene ({exc.__class__.__name__})") from None
+    return parse_scene(text, path, base_dir=str(path.parent))
