@@ -138,3 +138,48 @@ def straight_path(u0_mm: float, v0_mm: float, speed_mm_s: float, direction_deg: 
         return u0_mm + du * t, v0_mm + dv * t
 
     return path
+
+
+def asset_model(asset) -> tuple[Surface, TwoColourModel, AnalysisSettings]:
+    """Rebuild the surface, model and analysis settings an asset was compiled with.
+
+    `asset` is a :class:`playback.asset.Asset` read with ``load_surface=True``.
+    """
+    from haptex_compile.colours import Band
+    from haptex_compile.thresholds import ThresholdCurves
+
+    if asset.height_um is None:
+        raise ValueError("the asset was read without its surface (load_surface=True is needed)")
+    p = asset.perception
+    curves = ThresholdCurves(np.asarray(p["frequency_hz"], float), np.asarray(p["threshold_p_um"], float),
+                             np.asarray(p["threshold_np_um"], float), str(p.get("threshold_provenance", "asset")))
+    band = Band(float(p.get("band_low_hz", 10.0)), float(p.get("band_high_pass_hz", 600.0)), float(p.get("band_high_stop_hz", 800.0)))
+    base = np.asarray(p["base_frequencies_hz"], float)
+    model = TwoColourModel(curves, band, (float(base[0]), float(base[1])), float(p.get("summation_exponent", 1.23)))
+    settings = AnalysisSettings(frame_ms=float(p.get("frame_ms", asset.tables.frame_ms)),
+                                footprint_sigma_mm=float(p.get("footprint_sigma_mm", 0.25)),
+                                margin_ms=float(p.get("margin_ms", 150.0)))
+    height = np.asarray(asset.height_um, dtype=float)
+    if asset.surface_periodic:
+        geo = asset.surface_geometry
+        surface = Surface(height, asset.pixel_size_um, True, np.asarray(geo["period_t1_px"], float),
+                          np.asarray(geo["period_t2_px"], float), np.asarray(geo["cell_origin_px"], float))
+    else:
+        surface = Surface(height, asset.pixel_size_um, False)
+    return surface, model, settings
+
+
+def render_direct(asset, frame_centres_s: np.ndarray, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """Reference frames for ``haptex-play --mode direct``: (a40, a320) [n_frames, n_contactors] in µm.
+
+    Parameters
+    ----------
+    asset : playback.asset.Asset
+        Read with ``load_surface=True``.
+    frame_centres_s : ndarray [n_frames]
+    trajectory : callable
+        ``trajectory(t_s) -> (o_u_mm, o_v_mm, phi_deg)``.
+    """
+    surface, model, settings = asset_model(asset)
+    frames = render_frames(surface, model, settings, asset.contactors_mm, frame_centres_s, trajectory)
+    return frames.a40, frames.a320

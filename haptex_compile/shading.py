@@ -40,6 +40,9 @@ METHODS = ("default", "accurate", "tsai-shah")
 # slopes) is too weak: shape from shading is ill-posed and we fall back (see shape_from_shading).
 MIN_SLANT_DEG = 5.0
 MAX_SLANT_DEG = 89.0
+# Weight of the flat-on-average prior for non-periodic images (see solve_variational).
+LOWFREQ_WEIGHT = 1.0
+LOWFREQ_CYCLES = 1.0
 
 
 @dataclass(frozen=True)
@@ -645,6 +648,8 @@ def shape_from_shading(
     kwargs = {}
     if method == "accurate":
         kwargs = dict(coarse_gn=12, mid_gn=8, fine_gn=8, fine_cg=30, tol=0.01)
+    if not periodic:
+        kwargs.update(data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES)
     z, albedo = solve_variational(
         dom_img, dom_w.astype(np.float32), light.vector, albedo, z0=z0, **kwargs
     )

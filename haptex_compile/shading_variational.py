@@ -76,7 +76,7 @@ def _reflectance(p, q, light):
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
-    def __init__(self, image, weight, light, lam, workers=2):
+    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
         self.light = np.asarray(light, dtype=float)
@@ -89,13 +89,34 @@ class _Problem:
         self.sy = np.sin(wy).astype(_F)
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
         self.shape = (rows, cols)
+        # Optional penalty on slopes at wavelengths longer than the data region (non-periodic
+        # images: a ramp or bowl across the image is otherwise nearly free, traded against
+        # the albedo): mu * phi(w) * |D(w)|^2 with phi a Gaussian low-pass.
+        self.lf = None
+        if lowfreq is not None:
+            mu, w0 = lowfreq
+            phi = np.exp(-(wx**2 + wy**2) / (w0 * w0))
+            # Slope across the light only: along it, the linear shading term fixes the slope.
+            lx, ly = self.light[0], self.light[1]
+            n = np.hypot(lx, ly)
+            cx, cy = (-ly / n, lx / n) if n > 1e-9 else (0.0, 0.0)
+            across = (cx * np.sin(wx) + cy * np.sin(wy)) ** 2
+            if n <= 1e-9:
+                across = np.sin(wx) ** 2 + np.sin(wy) ** 2
+            self.lf = (mu * phi * across).astype(_F)
+
+    def lowfreq(self, v):
+        f = sfft.rfft2(v, workers=self.workers)
+        f *= self.lf
+        return sfft.irfft2(f, s=self.shape, workers=self.workers).astype(_F)
 
     def energy(self, z, albedo):
         r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
         res = albedo * r - self.img
-        return 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(
-            np.sum(_lap(z) ** 2)
-        )
+        e = 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
+        if self.lf is not None:
+            e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
+        return e
 
     def precond(self, rp, rq, albedo):
         w = self.w
@@ -109,6 +130,8 @@ class _Problem:
         a2 = albedo * albedo
         sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
         sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
+        if self.lf is not None:
+            sym = sym + self.lf
         return (1.0 / sym).astype(_F)
 
     def apply_pre(self, inv_sym, v):
@@ -127,11 +150,16 @@ class _Problem:
         wres = w * res
         # grad = J^T W res + lam L L z ; D^T = -D for periodic central differences.
         grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap(_lap(z))
+        if self.lf is not None:
+            grad = grad + self.lowfreq(z)
         wa, wb = w * ja, w * jb
 
         def matvec(v):
             jv = ja * _dx(v) + jb * _dy(v)
-            return -(_dx(wa * jv) + _dy(wb * jv)) + self.lam * _lap(_lap(v)) + 1e-6 * v
+            out = -(_dx(wa * jv) + _dy(wb * jv)) + self.lam * _lap(_lap(v)) + 1e-6 * v
+            if self.lf is not None:
+                out += self.lowfreq(v)
+            return out
 
         inv_sym = self.precond(rp, rq, albedo)
         b = -grad.astype(_F)
@@ -225,6 +253,9 @@ def solve_variational(
     min_size: int = 24,
     max_levels: int = 12,
     workers: int = 2,
+    data_shape: tuple[int, int] | None = None,
+    lowfreq_weight: float = 0.0,
+    lowfreq_cycles: float = 1.0,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -257,6 +288,12 @@ def solve_variational(
         Most pyramid levels (1 = full resolution only).
     workers : int
         FFT threads.
+    data_shape : (int, int), optional
+        Size of the data region (non-periodic images embedded in a larger domain).
+    lowfreq_weight : float
+        Weight (relative to ``albedo²``) of the penalty on slopes at wavelengths longer than
+        the data region; 0 = none. Non-periodic images need it: the fabric lies flat on
+        average, and a ramp across the image is otherwise traded against the albedo.
 
     Returns
     -------
@@ -275,7 +312,11 @@ def solve_variational(
     for level in range(len(pyramid) - 1, -1, -1):
         img, w = pyramid[level]
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
-        prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers)
+        lowfreq = None
+        if lowfreq_weight > 0 and data_shape is not None:
+            side = max(data_shape) * img.shape[1] / image.shape[1]
+            lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
+        prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers, lowfreq)
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = coarse_cg if level > 1 else fine_cg
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo)

@@ -136,6 +136,7 @@ class Asset:
     surface_shape: tuple[int, int]
     height_um: np.ndarray | None = None
     lattice: dict[str, Any] | None = None
+    surface_geometry: dict[str, np.ndarray] | None = None  # periodic: period_t1_px, period_t2_px, cell_origin_px
 
     @property
     def n_contactors(self) -> int:
@@ -266,6 +267,14 @@ def _read_open(path: Path, f: h5py.File, load_surface: bool) -> Asset:
     if not math.isfinite(pixel_size_um) or pixel_size_um <= 0:
         raise AssetError(path, f"/surface pixel_size_um must be finite and > 0, got {pixel_size_um}")
     surface_periodic = bool(_attr(path, surface, "periodic", "/surface"))
+    geometry = None
+    if surface_periodic:
+        geometry = {}
+        for name in ("period_t1_px", "period_t2_px", "cell_origin_px"):
+            value = np.asarray(_attr(path, surface, name, "/surface"), dtype=np.float64).reshape(-1)
+            if value.shape != (2,) or not np.all(np.isfinite(value)):
+                raise AssetError(path, f"/surface {name} must be 2 finite numbers")
+            geometry[name] = value
     height = None
     lattice = None
     if load_surface:
@@ -332,5 +341,5 @@ def _read_open(path: Path, f: h5py.File, load_surface: bool) -> Asset:
         source_kind=source_kind, tables=tables, contactors_mm=contactors, scene_text=scene_text,
         scene_resolved=resolved, perception=perception, pixel_size_um=pixel_size_um,
         surface_periodic=surface_periodic, surface_shape=(int(hds.shape[0]), int(hds.shape[1])),
-        height_um=height, lattice=lattice,
+        height_um=height, lattice=lattice, surface_geometry=geometry,
     )

@@ -106,12 +106,6 @@ class TableInterpolator:
         s = np.abs(s)
 
         frac = np.empty((4, n))  # fractional node index along direction, speed, i, j
-        # Direction: mod 180 relative to node 0; np.interp maps degrees to a fractional node
-        # index in [0, n_dir] (n_dir is node 0 again, half a turn later).
-        if self._nd == 1:
-            frac[0] = 0.0
-        else:
-            frac[0] = np.interp(np.mod(d - self._dir0, 180.0), self._dir_rel, self._dir_pos)
         # Speed: linear in log(speed); np.interp clamps to the end nodes.
         below = s < self._s0
         above = s > self._s_top
@@ -128,9 +122,24 @@ class TableInterpolator:
         if self.periodic:
             np.mod(space, self._nij, out=space)
         else:
+            # The surface beyond its edge is its mirror image (as the compiler samples it), so a
+            # point outside reads the reflected node with the reflected direction of motion:
+            # reflecting u maps direction d to 180 - d, reflecting v maps d to -d.
             outside = ((space < 0.0) | (space > self._nij_max)).any(axis=0)
-            np.maximum(space, 0.0, out=space)
-            np.minimum(space, self._nij_max, out=space)
+            if outside.any():
+                period = 2.0 * self._nij_max
+                folded = np.mod(space, np.where(period > 0, period, 1.0))
+                flips = folded > self._nij_max
+                space[:] = np.where(flips, period - folded, folded)
+                d = np.where(flips[0], 180.0 - d, d)
+                d = np.where(flips[1], -d, d)
+            np.clip(space, 0.0, self._nij_max, out=space)
+        # Direction: mod 180 relative to node 0; np.interp maps degrees to a fractional node
+        # index in [0, n_dir] (n_dir is node 0 again, half a turn later).
+        if self._nd == 1:
+            frac[0] = 0.0
+        else:
+            frac[0] = np.interp(np.mod(d - self._dir0, 180.0), self._dir_rel, self._dir_pos)
 
         # Lower node k0 (clamped so an index that rounded up to n wraps via k1), upper node k1.
         k = np.empty((2, 4, n), dtype=np.intp)

@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 
 from haptex_compile.lattice import (Lattice, find_lattice, lattice_distance_px, reduce_basis,
                                     self_similarity)
-from haptex_compile.synth_images import (add_noise, add_uneven_light, basis_from_geometry,
+from haptex_compile.synth_images import (add_noise, add_slub, add_stain, add_uneven_light,
+                                         basis_from_geometry,
                                          jpeg_roundtrip, make_hard_case, weave_image)
 from haptex_compile.tiles import average_tile, flatten_illumination
 
@@ -219,31 +220,38 @@ def test_synthetic_is_exactly_periodic_on_an_integer_lattice():
     assert s.shape == img.shape
 
 
-@pytest.mark.parametrize("combine", ["median", "trimmed_mean"])
-def test_stain_is_voted_out(combine):
-    case = make_hard_case("stain 5%", 0)
-    img = case["image"]
-    lat = find_lattice(img)
-    avg = average_tile(img, lat, combine=combine)
-    stained = img < np.percentile(img, 3)  # the stain is the darkest region
-    resid = np.abs(avg.synthetic - img)
-    # outside the stain the synthetic follows the photo; inside it, it ignores the stain
-    assert np.median(resid[~stained]) < 0.1 * np.ptp(img)
-    inside = avg.synthetic[stained]
-    assert np.median(inside) > np.percentile(img, 20)
+@pytest.mark.parametrize("defect,combine", [("stain", "median"), ("slub", "median"),
+                                            ("stain", "trimmed_mean")])
+def test_defects_are_voted_out(defect, combine):
+    t1, t2 = basis_from_geometry(12.5, 15.5, 82.0, 12.0)
+    clean = weave_image((256, 256), t1, t2, kind="plain", seed=6)
+    if defect == "stain":
+        img = add_stain(clean, 0.05, seed=2)
+    else:
+        img = add_slub(clean, t1, 0.05, seed=2)
+    hit = np.abs(img - clean) > 0.1  # where the defect changed the photo noticeably
+    assert hit.mean() > 0.02
+    avg = average_tile(img, find_lattice(img), combine=combine, flatten_sigma_px=None)
+    before = float(np.sqrt(np.mean((img - clean)[hit] ** 2)))
+    after = float(np.sqrt(np.mean((avg.synthetic - clean)[hit] ** 2)))
+    # the defect covers 5 % of the repetitions: a median ignores it, a trimmed mean nearly so
+    assert after < 0.15 * before
+    assert after < 0.05
 
 
 def test_uneven_light_is_flattened_before_averaging():
     t1, t2 = basis_from_geometry(15.0, 19.0, 80.0, 0.0)
     clean = weave_image((256, 256), t1, t2, kind="random", seed=4) + 0.2
-    lit = add_uneven_light(clean, 0.7)
+    y, x = np.mgrid[0:256, 0:256] / 255.0
+    gain = 1.0 - 0.7 * (0.6 * x * x + 0.4 * y)  # multiplicative light: 1 down to 0.3
+    lit = clean * gain
     flat = flatten_illumination(lit, 2 * 19.0)
-    # the illumination ratio between the darkest and brightest 64 px blocks of the flattened
-    # image is close to 1, while the lit image spans a factor of about 1 / (1 - 0.7)
+    # block means follow the light (ratio up to 1 / 0.3 across the image); after dividing by
+    # the heavy blur the 64 px blocks agree within a few percent
     blocks = flat.reshape(4, 64, 4, 64).mean(axis=(1, 3))
     lit_blocks = lit.reshape(4, 64, 4, 64).mean(axis=(1, 3))
     assert blocks.max() / blocks.min() < 1.15
-    assert lit_blocks.max() / lit_blocks.min() > 1.8
+    assert lit_blocks.max() / lit_blocks.min() > 2.0
     avg = average_tile(lit, find_lattice(lit))
     assert avg.synthetic.shape == lit.shape
     assert np.isfinite(avg.synthetic).all()

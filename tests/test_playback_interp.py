@@ -39,11 +39,17 @@ def test_oblique_basis_reproduces_linear_field():
     assert not flags.any()
 
 
-def test_outside_clamps_to_edge_and_flags():
+def test_outside_mirrors_surface_and_direction_and_flags():
+    # Beyond the edge the surface is its mirror image (nodes u = 0..4): u = -3 reads u = 3,
+    # u = 10 reads u = 2 (reflected twice).
     t = tables_from(linear_field, [0.0], [50.0], nj=4, ni=5)
     a40, _, flags = table_amplitudes(t, [-3.0, 10.0, 2.0], [1.0, 1.0, 1.0], [50.0] * 3, [0.0] * 3)
-    np.testing.assert_allclose(a40, [3.0 + 0.25, 3.0 + 0.5 * 4 + 0.25, 3.0 + 1.0 + 0.25], rtol=1e-6)
+    np.testing.assert_allclose(a40, [3.0 + 1.5 + 0.25, 3.0 + 1.0 + 0.25, 3.0 + 1.0 + 0.25], rtol=1e-6)
     assert list(flags) == [OUTSIDE, OUTSIDE, 0]
+    # A reflection in u maps direction d to 180 - d, one in v maps d to -d (mod 180).
+    t = tables_from(dir_field, np.arange(0.0, 180.0, 15.0), [50.0], nj=4, ni=5)
+    a40, _, _ = table_amplitudes(t, [-1.0, 2.0, -1.0], [1.0, -1.0, -1.0], [50.0] * 3, [30.0] * 3)
+    np.testing.assert_allclose(a40, [10.0 + 15.0, 10.0 + 15.0, 10.0 + 3.0], rtol=1e-6)
 
 
 def test_periodic_wraps_both_axes():

@@ -1,0 +1,138 @@
+"""``haptex-compile``: texture sources to tactile assets (a thin click layer over the library)."""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import click
+
+from playback.cli_common import EXIT_BAD_INPUT, common_options, show_progress
+
+LOG = logging.getLogger("haptex.compile")
+
+
+def _parse_light(ctx: click.Context, param: click.Parameter, value: str | None):
+    if value is None:
+        return None
+    try:
+        slant, tilt = (float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter("expected SLANT,TILT in degrees, e.g. 30,45") from None
+    if not (0 <= slant < 90):
+        raise click.BadParameter("slant must be in [0, 90) degrees")
+    return slant, tilt
+
+
+def _parse_pixel(ctx: click.Context, param: click.Parameter, value: str | None):
+    if value is None:
+        return None
+    from haptex_compile.units import parse_length_um
+
+    try:
+        return parse_length_um(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def _dependencies(spec: str, scene_path: str | None, kes: str | None, scene) -> list[str]:
+    deps = []
+    if not spec.lower().startswith("brownian:"):
+        deps.append(spec)
+    for extra in (scene_path, kes, getattr(scene, "thresholds_csv", None)):
+        if extra:
+            deps.append(extra)
+    return deps
+
+
+def _one(job: dict) -> tuple[str, str | None]:
+    """Compile one input (runs in a worker process for --jobs); returns (input, error line or None)."""
+    from playback.errors import HaptexError
+    from haptex_compile.compile import compile_source
+
+    try:
+        compile_source(job["spec"], job["out"], job["scene"], job["options"], exr_path=job["exr"],
+                       exr_speed=job["exr_speed"], exr_direction=job["exr_direction"])
+        return job["spec"], None
+    except (HaptexError, OSError, ValueError) as exc:
+        if job["debug"]:
+            raise
+        return job["spec"], " ".join(str(exc).split())
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("inputs", nargs=-1, required=True)
+@click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output asset (one input).")
+@click.option("--out-dir", type=click.Path(file_okay=False), help="Folder for the assets of many inputs (NAME.tact.h5).")
+@click.option("--scene", "scene_path", type=click.Path(dir_okay=False), help="Scene TOML (default: HAPTEX 6 x 4 array, 10-200 mm/s, all directions).")
+@click.option("--pixel-size", callback=_parse_pixel, help="Pixel size, e.g. 10um or 0.01mm (default: image metadata, else 20 um with a warning).")
+@click.option("--relief-um", type=click.FloatRange(min=0, min_open=True), help="Height scale of a photo's relief (see --relief-kind); default 10 um RMS with a warning.")
+@click.option("--relief-kind", type=click.Choice(["rms", "pv"]), default="rms", show_default=True, help="What --relief-um means: RMS or peak-to-valley.")
+@click.option("--sfs", type=click.Choice(["default", "tsai-shah"]), default="default", show_default=True, help="Shape-from-shading solver for photos.")
+@click.option("--light", callback=_parse_light, help="Light direction SLANT,TILT in degrees (default: estimated from the photo).")
+@click.option("--kes", type=click.Path(dir_okay=False), help="KES-F file giving a photo's height scale (SMD).")
+@click.option("--roughness", type=click.Choice(["auto", "none"]), default="auto", show_default=True, help="Fractal roughness of photos.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random choice (results are reproducible).")
+@click.option("--exr", "exr_path", type=click.Path(dir_okay=False), help="Also write height, a40, a320 maps as an EXR (one input).")
+@click.option("--exr-speed", type=click.FloatRange(min=0, min_open=True), default=80.0, show_default=True, help="Speed (mm/s) of the EXR amplitude maps.")
+@click.option("--exr-direction", type=float, default=0.0, show_default=True, help="Direction (deg) of the EXR amplitude maps.")
+@click.option("--md", "md_path", type=click.Path(dir_okay=False), help="Write a Make dependency file.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Inputs compiled in parallel.")
+@common_options
+def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind, sfs, light, kes, roughness, seed,
+         exr_path, exr_speed, exr_direction, md_path, jobs, debug=False):
+    """Compile INPUT(s) into tactile assets (.tact.h5).
+
+    INPUT is a height map (.npy, .exr; µm), a photograph (.jpg .png .bmp .tif), a Kawabata
+    file (.kes.json, .kes.csv) or a Brownian spec such as
+    brownian:H=0.7,size=1024,pixel=10um,rms=5um,seed=3.
+    """
+    from haptex_compile.io_scene import read_scene
+    from haptex_compile.scene import default_scene
+    from haptex_compile.sources import SourceOptions, input_kind, output_stem
+
+    if (output is None) == (out_dir is None):
+        raise click.UsageError("give exactly one of -o/--output or --out-dir")
+    if output is not None and len(inputs) != 1:
+        raise click.UsageError("-o/--output takes one input; use --out-dir for several")
+    if exr_path is not None and len(inputs) != 1:
+        raise click.UsageError("--exr takes one input")
+    for spec in inputs:
+        input_kind(spec)  # unknown types fail before any work
+    scene = read_scene(scene_path) if scene_path else default_scene()
+    options = SourceOptions(pixel_size_um=pixel_size, relief_um=relief_um, relief_kind=relief_kind, sfs=sfs,
+                            light=light, kes_path=kes, roughness=roughness, seed=seed)
+    outs = [output] if output else [str(Path(out_dir) / f"{output_stem(s)}.tact.h5") for s in inputs]
+    jobs_list = [{"spec": s, "out": o, "scene": scene, "options": options, "exr": exr_path, "exr_speed": exr_speed,
+                  "exr_direction": exr_direction, "debug": debug} for s, o in zip(inputs, outs)]
+    failures = []
+    if jobs > 1 and len(jobs_list) > 1:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            results = list(pool.map(_one, jobs_list))
+    else:
+        results = []
+        bar = click.progressbar(jobs_list, label="compiling", file=sys.stderr) if show_progress() and len(jobs_list) > 1 else None
+        iterator = bar if bar is not None else jobs_list
+        if bar is not None:
+            bar.__enter__()
+        try:
+            for job in iterator:
+                results.append(_one(job))
+        finally:
+            if bar is not None:
+                bar.__exit__(None, None, None)
+    for (spec, error), out in zip(results, outs):
+        if error:
+            failures.append(error)
+            click.echo(f"haptex-compile: error: {error}", err=True)
+        else:
+            LOG.info("%s -> %s", spec, out)
+    if md_path and not failures:
+        lines = [f"{out}: {' '.join(_dependencies(s, scene_path, kes, scene))}" for s, out in zip(inputs, outs)]
+        tmp = f"{md_path}.tmp{os.getpid()}"
+        Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
+        os.replace(tmp, md_path)
+    if failures:
+        sys.exit(EXIT_BAD_INPUT)
