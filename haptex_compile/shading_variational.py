@@ -26,22 +26,34 @@ import cv2
 _F = np.float32
 
 
+def _dx2(z: np.ndarray) -> np.ndarray:
+    """Twice the periodic central difference along columns (x): z[j+1] - z[j-1]."""
+    out = np.empty_like(z)
+    np.subtract(z[:, 2:], z[:, :-2], out=out[:, 1:-1])
+    np.subtract(z[:, 1], z[:, -1], out=out[:, 0])
+    np.subtract(z[:, 0], z[:, -2], out=out[:, -1])
+    return out
+
+
+def _dy2(z: np.ndarray) -> np.ndarray:
+    """Twice the periodic central difference along rows (y): z[i+1] - z[i-1]."""
+    out = np.empty_like(z)
+    np.subtract(z[2:], z[:-2], out=out[1:-1])
+    np.subtract(z[1], z[-1], out=out[0])
+    np.subtract(z[0], z[-2], out=out[-1])
+    return out
+
+
 def _dx(z: np.ndarray) -> np.ndarray:
     """Periodic central difference along columns (x), pixel units."""
-    out = np.empty_like(z)
-    out[:, 1:-1] = z[:, 2:] - z[:, :-2]
-    out[:, 0] = z[:, 1] - z[:, -1]
-    out[:, -1] = z[:, 0] - z[:, -2]
+    out = _dx2(z)
     out *= 0.5
     return out
 
 
 def _dy(z: np.ndarray) -> np.ndarray:
     """Periodic central difference along rows (y), pixel units."""
-    out = np.empty_like(z)
-    out[1:-1] = z[2:] - z[:-2]
-    out[0] = z[1] - z[-1]
-    out[-1] = z[0] - z[-2]
+    out = _dy2(z)
     out *= 0.5
     return out
 
@@ -152,11 +164,21 @@ class _Problem:
         grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap(_lap(z))
         if self.lf is not None:
             grad = grad + self.lowfreq(z)
-        wa, wb = w * ja, w * jb
+        # Halves of the central differences folded into the coefficients (fewer passes).
+        ha, hb = 0.5 * ja, 0.5 * jb
+        wa, wb = w * ha, w * hb
+        lam = self.lam
 
         def matvec(v):
-            jv = ja * _dx(v) + jb * _dy(v)
-            out = -(_dx(wa * jv) + _dy(wb * jv)) + self.lam * _lap(_lap(v)) + 1e-6 * v
+            jv = ha * _dx2(v)
+            jv += hb * _dy2(v)
+            out = _dx2(wa * jv)
+            out += _dy2(wb * jv)
+            np.negative(out, out=out)
+            lv = _lap(_lap(v))
+            lv *= lam
+            out += lv
+            out += 1e-6 * v
             if self.lf is not None:
                 out += self.lowfreq(v)
             return out
