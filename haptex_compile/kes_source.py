@@ -5,7 +5,7 @@ from haptex_compile.errors import InputError
 from haptex_compile.sources import SourceOptions, SourceResult
 from haptex_compile.surface import periodic_surface_from_tile
 
-DEFAULT_KES_PIXEL_UM = 10.0
+DEFAULT_KES_PIXEL_UM = 20.0  # fine enough for the 0.5 mm probe and for threads of 0.1 mm or more
 
 
 def kes_source(spec: str, options: SourceOptions) -> SourceResult:

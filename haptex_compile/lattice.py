@@ -498,28 +498,13 @@ def _propose(points: np.ndarray, values: np.ndarray, field: _NccField,
     return list(hyps.values()), sp, n_draw
 
 
-def _eligible_fraction(basis: np.ndarray) -> float:
-    """How close to the best shell score a proposal must come to compete on cell area.
-
-    Off-grid lags of very short periods are under-read by the spline (sharp peaks; measured up to
-    ~10 % at 3.2 px and ~20 % at 2.6 px, while lags on the integer grid are read exactly), so
-    short proposals get the corresponding allowance; otherwise `_ELIGIBLE_FRACTION`.
-    """
-    shortest = float(np.linalg.norm(basis, axis=0).min())
-    if shortest < 4.0:
-        return 0.75
-    if shortest < 6.0:
-        return 0.85
-    return _ELIGIBLE_FRACTION
-
-
 def _select(hyps: list[_Hypothesis]) -> _Hypothesis | None:
     if not hyps:
         return None
     best = max(h.shell for h in hyps)
     if best <= 0:
         return max(hyps, key=lambda h: h.shell)
-    eligible = [h for h in hyps if h.shell >= _eligible_fraction(h.basis) * best]
+    eligible = [h for h in hyps if h.shell >= _ELIGIBLE_FRACTION * best]
     # smallest cell wins (a super-lattice is as self-similar but coarser); ties by score
     return min(eligible, key=lambda h: (round(math.log(h.area) / math.log(1.05)), -h.shell))
 

@@ -40,6 +40,8 @@ METHODS = ("default", "accurate", "tsai-shah")
 # slopes) is too weak: shape from shading is ill-posed and we fall back (see shape_from_shading).
 MIN_SLANT_DEG = 5.0
 MAX_SLANT_DEG = 89.0
+# From this slant on, attached and cast shadows dominate and the solution degrades.
+GRAZING_DEG = 75.0
 # Weight of the flat-on-average prior for non-periodic images (see solve_variational).
 LOWFREQ_WEIGHT = 1.0
 LOWFREQ_CYCLES = 1.0
@@ -411,13 +413,14 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     - slant: from the mean, variance and (negative) skew of the intensities
       (:func:`_moment_slant`);
     - albedo: from the mean and variance at that slant (:func:`_moment_albedo`);
-    - with `refine`, the tilt is then refined by the energy of the default solver on a reduced
-      image (:func:`_refine_tilt`): the solver is very sensitive to the tilt (3° off on smooth
-      bumps triples its error), and the energy discriminates the tilt to a fraction of a degree.
+    - with `refine` (default), tilt and slant are then refined by the misfit that the default
+      solver leaves on a reduced image (:func:`_refine_light`). This matters: the solver is
+      very sensitive to the light (3° off in tilt or 4° in slant can triple its error).
 
-    The uncertainties are the spread of the same estimators over 4 x 4 blocks divided by 4
-    (sampling only), with a floor of 5° for the slant's model error; surfaces with
-    strongly non-Gaussian slopes (e.g. woven yarns) bias the slant by 10-20°.
+    Without `refine`, the uncertainties are the spread of the same estimators over 4 x 4
+    blocks divided by 4 (sampling only), with a floor of 5° for the slant's model error;
+    surfaces with strongly non-Gaussian slopes (e.g. woven yarns) bias the statistical slant
+    by 10-25°.
 
     Parameters
     ----------
@@ -426,7 +429,7 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     mask : ndarray of bool, optional
         Pixels to use.
     refine : bool
-        Refine the tilt by the solver's energy (about 20 solves on a 96-pixel image).
+        Refine the light by the solver's misfit (about 30 solves on a 160-pixel image).
 
     Returns
     -------
@@ -458,25 +461,34 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
 
 
-def _refine_light(img, valid, slant, tilt, slant_sd_stat, side=96):
-    """Refine slant and tilt by the data misfit the default solver leaves on a reduced image.
+def _refine_light(img, valid, slant, tilt, slant_sd_stat, side=160):
+    """Refine tilt and slant by the data misfit the default solver leaves on a reduced image.
 
-    A wrong light leaves shading that no surface explains. The misfit (data term only: the
-    smoothness term favours grazing light, whose shallower slopes are smoother) is searched by
-    coordinates in halving steps, the tilt within ±24° of the statistical estimate and the
-    slant within ±15° of it (at high slant the misfit keeps falling slowly towards grazing
-    light, so the statistical estimate bounds it). Returns (slant, tilt, slant_sd, tilt_sd);
-    the uncertainties are the changes that raise the misfit by 20 % (parabola through the last
-    three energies), at least 0.5°.
+    A wrong light leaves shading that no surface explains; the misfit is the data term only
+    (the smoothness term favours grazing light, whose shallower slopes are smoother). The image
+    is reduced to at most `side` pixels (about 30 solves of that size).
+
+    - Tilt: coordinate search in halving steps from the statistical estimate (±24°); the misfit
+      is sharp in the tilt even at a wrong slant.
+    - Slant: below the true slant the misfit is large (the shading has more contrast than any
+      surface can make with that light); from the true slant up it is small and falls slowly
+      towards grazing light (or rises again, for woven surfaces). The slant is the knee of
+      ``log(misfit)``: on a 5° grid over 5-85°, from the bottom of the largest drop (ending at
+      80° at most), climb while the misfit still falls by more than 10 % per degree; then the
+      same on a 1° grid around it. The statistical slant only seeds the tilt search.
+    - The tilt is then polished at that slant.
+
+    Returns (slant, tilt, slant_sd, tilt_sd). The tilt's uncertainty is the change that raises
+    the misfit by 20 % (parabola through ±1°), at least 0.5°; the slant's is a stated 2° (the
+    1° grid and the knee rule; measured errors on the bench surfaces are 0-6°).
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
     small, w = _downsample_to(img, valid, side)
-    lo, hi = max(MIN_SLANT_DEG, slant - 15.0), min(85.0, slant + 15.0)
     cache: dict[tuple[float, float], float] = {}
 
     def e_of(s, t):
-        s = float(np.clip(s, lo, hi))
+        s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
         key = (round(s, 3), round(float(t), 3))
         if key not in cache:
             lv = Light(s, t % 360.0).vector
@@ -485,41 +497,41 @@ def _refine_light(img, valid, slant, tilt, slant_sd_stat, side=96):
             cache[key] = energy(small, w, lv, a, z, lam=0.0)
         return cache[key]
 
-    s, t = float(np.clip(slant, lo, hi)), float(tilt)
-    step_t = 12.0
-    while step_t >= 0.75:  # tilt first: sharp even at a wrong slant
-        cands = [t - step_t, t, t + step_t]
-        t_new = cands[int(np.argmin([e_of(s, c) for c in cands]))]
-        if t_new == t:
-            step_t /= 2
-        t = t_new
-    grid = np.arange(lo, hi + 1e-9, 2.5)
-    es = np.array([e_of(g, t) for g in grid])
-    k = int(np.argmin(es))
-    # Accept the misfit's minimum only inside a clear well; otherwise keep the statistics.
-    if 0 < k < len(grid) - 1 and min(es[0], es[-1]) >= 1.5 * es[k]:
-        d1, d2 = es[k + 1] - es[k - 1], es[k + 1] - 2 * es[k] + es[k - 1]
-        s = float(grid[k]) + (float(np.clip(-0.5 * d1 / d2, -0.5, 0.5)) * 2.5 if d2 > 0 else 0.0)
-        t_s = t
-        step_t = 1.5
-        while step_t >= 0.4:  # re-polish the tilt at the new slant
-            cands = [t_s - step_t, t_s, t_s + step_t]
+    def polish_tilt(s, t, step, stop):
+        while step >= stop:
+            cands = [t - step, t, t + step]
             t_new = cands[int(np.argmin([e_of(s, c) for c in cands]))]
-            if t_new == t_s:
-                step_t /= 2
-            t_s = t_new
-        t = t_s
-        well = True
-    else:
-        well = False
+            if t_new == t:
+                step /= 2
+            t = t_new
+        return t
 
-    def sd(f, x, h):
-        e0, em, ep = f(x), f(x - h), f(x + h)
-        curv = (em + ep - 2 * e0) / h**2
-        return float(np.sqrt(0.4 * e0 / curv)) if curv > 0 and e0 > 0 else 90.0
+    def knee_slant(t):
+        grid = np.arange(5.0, 85.0 + 1e-9, 5.0)
+        log_e = np.log(np.maximum([e_of(g, t) for g in grid], 1e-30))
+        # Drops ending at <= 80°: towards grazing light the misfit falls for any surface.
+        drops = np.diff(log_e)[: len(grid) - 2]
+        k = int(np.argmin(drops)) + 1  # bottom of the largest drop
+        while k < len(grid) - 1 and (log_e[k + 1] - log_e[k]) / 5.0 < -0.1:
+            k += 1
+        knee = float(grid[k])
+        # The same rule on a 1° grid around the coarse knee.
+        fine = np.arange(max(MIN_SLANT_DEG, knee - 5.0), min(85.0, knee + 5.0) + 1e-9, 1.0)
+        log_f = np.log(np.maximum([e_of(g, t) for g in fine], 1e-30))
+        j = int(np.argmin(np.diff(log_f))) + 1 if len(fine) > 1 else 0
+        while j < len(fine) - 1 and (log_f[j + 1] - log_f[j]) < -0.1:
+            j += 1
+        return float(fine[j])
 
-    tilt_sd = sd(lambda x: e_of(s, x), t, 1.0)
-    slant_sd = sd(lambda x: e_of(x, t), s, 1.0) if well else slant_sd_stat
+    s = float(np.clip(slant, MIN_SLANT_DEG, 85.0))
+    t = polish_tilt(s, float(tilt), 12.0, 0.75)
+    s = knee_slant(t)
+    t = polish_tilt(s, t, 3.0, 0.4)
+    slant_sd = 2.0
+
+    e0, em, ep = e_of(s, t), e_of(s, t - 1.0), e_of(s, t + 1.0)
+    curv = em + ep - 2 * e0
+    tilt_sd = float(np.sqrt(0.4 * e0 / curv)) if curv > 0 and e0 > 0 else 90.0
     return s, t, min(max(slant_sd, 0.5), 90.0), min(max(tilt_sd, 0.5), 90.0)
 
 
@@ -628,9 +640,10 @@ def shape_from_shading(
             " surfaces)"
         )
         used_method = f"{method}+brightness-start"
-    if light.slant_deg > 80.0:
+    if light.slant_deg >= GRAZING_DEG:
         warnings.append(
-            f"grazing light (slant {light.slant_deg:.1f}°): cast shadows are not modelled"
+            f"grazing light (slant {light.slant_deg:.1f}° >= {GRAZING_DEG:g}°): shadowed pixels"
+            " carry no information and cast shadows are not modelled; expect large errors"
         )
     rows, cols = img.shape
     if periodic:
@@ -647,7 +660,7 @@ def shape_from_shading(
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
     kwargs = {}
     if method == "accurate":
-        kwargs = dict(coarse_gn=12, mid_gn=8, fine_gn=8, fine_cg=30, tol=0.01)
+        kwargs = dict(coarse_gn=8, mid_gn=6, fine_gn=6, fine_cg=20, tol=0.01)
     if not periodic:
         kwargs.update(data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES)
     z, albedo = solve_variational(

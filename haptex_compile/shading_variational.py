@@ -58,6 +58,52 @@ def _dy(z: np.ndarray) -> np.ndarray:
     return out
 
 
+def _fx(e: np.ndarray) -> np.ndarray:
+    """Periodic forward difference along x: e[j+1] - e[j]."""
+    out = np.empty_like(e)
+    np.subtract(e[:, 1:], e[:, :-1], out=out[:, :-1])
+    np.subtract(e[:, 0], e[:, -1], out=out[:, -1])
+    return out
+
+
+def _fxt(u: np.ndarray) -> np.ndarray:
+    """Transpose of :func:`_fx`: u[j-1] - u[j]."""
+    out = np.empty_like(u)
+    np.subtract(u[:, :-1], u[:, 1:], out=out[:, 1:])
+    np.subtract(u[:, -1], u[:, 0], out=out[:, 0])
+    return out
+
+
+def _fy(e: np.ndarray) -> np.ndarray:
+    """Periodic forward difference along y."""
+    out = np.empty_like(e)
+    np.subtract(e[1:], e[:-1], out=out[:-1])
+    np.subtract(e[0], e[-1], out=out[-1])
+    return out
+
+
+def _fyt(u: np.ndarray) -> np.ndarray:
+    """Transpose of :func:`_fy`."""
+    out = np.empty_like(u)
+    np.subtract(u[:-1], u[1:], out=out[1:])
+    np.subtract(u[-1], u[0], out=out[0])
+    return out
+
+
+_BIHARMONIC = np.array(
+    [[0, 0, 1, 0, 0], [0, 2, -8, 2, 0], [1, -8, 20, -8, 1], [0, 2, -8, 2, 0], [0, 0, 1, 0, 0]],
+    dtype=np.float32,
+)
+
+
+def _lap2(z: np.ndarray) -> np.ndarray:
+    """Periodic ``_lap(_lap(z))`` (13-point biharmonic) by OpenCV, about 4 x faster."""
+    if z.dtype != np.float32 or min(z.shape) < 3:
+        return _lap(_lap(z))
+    padded = cv2.copyMakeBorder(z, 2, 2, 2, 2, cv2.BORDER_WRAP)
+    return cv2.filter2D(padded, -1, _BIHARMONIC, borderType=cv2.BORDER_CONSTANT)[2:-2, 2:-2]
+
+
 def _lap(z: np.ndarray) -> np.ndarray:
     """Periodic 5-point Laplacian."""
     out = -4.0 * z
@@ -88,9 +134,21 @@ def _reflectance(p, q, light):
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
-    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None):
+    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
+        # Gradient data: compare the differences of neighbouring pixels (both valid) rather
+        # than the intensities, so that a uniform brightness error (albedo, ambient light)
+        # cannot be explained by uniform roughness.
+        self.grad_data = gradient_data
+        # Lambertian shading never exceeds the albedo: the brightest valid pixels bound it
+        # from below (a high percentile, so that a few noisy pixels do not set it).
+        vals = self.img[self.w > 0.5]
+        self.albedo_min = float(np.percentile(vals, 99.9)) if vals.size else 0.0
+        if gradient_data:
+            w = self.w
+            self.wx = w * np.roll(w, -1, axis=1)
+            self.wy = w * np.roll(w, -1, axis=0)
         self.light = np.asarray(light, dtype=float)
         self.lam = float(lam)
         self.workers = workers
@@ -100,6 +158,7 @@ class _Problem:
         self.sx = np.sin(wx).astype(_F)
         self.sy = np.sin(wy).astype(_F)
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
+        self.nlap = (4 - 2 * np.cos(wx) - 2 * np.cos(wy)).astype(_F)
         self.shape = (rows, cols)
         # Optional penalty on slopes at wavelengths longer than the data region (non-periodic
         # images: a ramp or bowl across the image is otherwise nearly free, traded against
@@ -122,13 +181,41 @@ class _Problem:
         f *= self.lf
         return sfft.irfft2(f, s=self.shape, workers=self.workers).astype(_F)
 
-    def energy(self, z, albedo):
-        r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
+    def data_energy(self, res):
+        if self.grad_data:
+            rx, ry = _fx(res), _fy(res)
+            return 0.5 * float(np.sum(self.wx * rx * rx) + np.sum(self.wy * ry * ry))
+        return 0.5 * float(np.sum(self.w * res * res))
+
+    def data_grad(self, res):
+        """Derivative of the data energy with respect to the residual image."""
+        if self.grad_data:
+            return _fxt(self.wx * _fx(res)) + _fyt(self.wy * _fy(res))
+        return self.w * res
+
+    def energy(self, z, albedo, r=None):
+        """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
+        if r is None:
+            r = self.reflectance(z)
         res = albedo * r - self.img
-        e = 0.5 * float(np.sum(self.w * res * res)) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
+        e = self.data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
         if self.lf is not None:
             e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
         return e
+
+    def reflectance(self, z):
+        lx, ly, lz = (float(c) for c in self.light)
+        p = _dx2(z)
+        q = _dy2(z)
+        # R = (lz - p lx - q ly) / sqrt(1 + p² + q²) with p, q the halved differences.
+        num = lz - 0.5 * (lx * p + ly * q)
+        g = p * p
+        g += q * q
+        g *= 0.25
+        g += 1.0
+        np.sqrt(g, out=g)
+        num /= g
+        return num
 
     def precond(self, rp, rq, albedo):
         w = self.w
@@ -141,6 +228,8 @@ class _Problem:
         tyy = float(np.sum(w * rq * rq)) / wsum * wm
         a2 = albedo * albedo
         sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
+        if self.grad_data:
+            sym = sym * self.nlap
         sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
         if self.lf is not None:
             sym = sym + self.lf
@@ -149,7 +238,7 @@ class _Problem:
     def apply_pre(self, inv_sym, v):
         f = sfft.rfft2(v, workers=self.workers)
         f *= inv_sym
-        return sfft.irfft2(f, s=self.shape, workers=self.workers).astype(_F)
+        return sfft.irfft2(f, s=self.shape, workers=self.workers)
 
     def gn_step(self, z, albedo, max_cg, tol):
         """One Gauss-Newton direction by PCG; returns (dz, energy gradient norm)."""
@@ -159,9 +248,9 @@ class _Problem:
         res = albedo * r - self.img
         ja = albedo * rp
         jb = albedo * rq
-        wres = w * res
+        wres = self.data_grad(res)
         # grad = J^T W res + lam L L z ; D^T = -D for periodic central differences.
-        grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap(_lap(z))
+        grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap2(z)
         if self.lf is not None:
             grad = grad + self.lowfreq(z)
         # Halves of the central differences folded into the coefficients (fewer passes).
@@ -169,13 +258,21 @@ class _Problem:
         wa, wb = w * ha, w * hb
         lam = self.lam
 
+        grad_data = self.grad_data
+        wx, wy = (self.wx, self.wy) if grad_data else (None, None)
+
         def matvec(v):
             jv = ha * _dx2(v)
             jv += hb * _dy2(v)
-            out = _dx2(wa * jv)
-            out += _dy2(wb * jv)
+            if grad_data:
+                jv = _fxt(wx * _fx(jv)) + _fyt(wy * _fy(jv))
+                out = _dx2(ha * jv)
+                out += _dy2(hb * jv)
+            else:
+                out = _dx2(wa * jv)
+                out += _dy2(wb * jv)
             np.negative(out, out=out)
-            lv = _lap(_lap(v))
+            lv = _lap2(v)
             lv *= lam
             out += lv
             out += 1e-6 * v
@@ -216,7 +313,8 @@ class _Problem:
             accepted = False
             for _ in range(8):  # backtracking: GN may overshoot where R is far from linear
                 zt = z + step * dz
-                et = self.energy(zt, albedo)
+                rt = self.reflectance(zt)
+                et = self.energy(zt, albedo, rt)
                 if np.isfinite(et) and et <= e:
                     accepted = True
                     break
@@ -225,18 +323,21 @@ class _Problem:
                 break
             z, e = zt, et
             if fit_albedo:
-                albedo, e = self.fit_albedo(z, albedo)
+                albedo, e = self.fit_albedo(z, albedo, rt)
         return z, albedo
 
-    def fit_albedo(self, z, albedo):
-        r, _, _ = _reflectance(_dx(z), _dy(z), self.light)
+    def fit_albedo(self, z, albedo, r=None):
+        if r is None:
+            r = self.reflectance(z)
+        if self.grad_data:  # the albedo only scales the slopes: nothing to fit
+            return albedo, self.energy(z, albedo, r)
         w = self.w
         den = float(np.sum(w * r * r))
         if den > 0:
             a = float(np.sum(w * r * self.img)) / den
             if np.isfinite(a) and a > 0:
-                albedo = min(max(a, 1e-3), 1e3)
-        return albedo, self.energy(z, albedo)
+                albedo = min(max(a, self.albedo_min, 1e-3), 1e3)
+        return albedo, self.energy(z, albedo, r)
 
 
 def _downsample(img, w):
@@ -266,11 +367,11 @@ def solve_variational(
     lam_growth: float = 8.0,
     fit_albedo: bool = True,
     z0: np.ndarray | None = None,
-    coarse_gn: int = 8,
-    mid_gn: int = 4,
-    fine_gn: int = 3,
+    coarse_gn: int = 6,
+    mid_gn: int = 3,
+    fine_gn: int = 2,
     coarse_cg: int = 30,
-    fine_cg: int = 15,
+    fine_cg: int = 10,
     tol: float = 0.02,
     min_size: int = 24,
     max_levels: int = 12,
@@ -278,6 +379,9 @@ def solve_variational(
     data_shape: tuple[int, int] | None = None,
     lowfreq_weight: float = 0.0,
     lowfreq_cycles: float = 1.0,
+    fit_min_level: int = 0,
+    gradient_data: bool = False,
+    bound_max_level: int = 0,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -295,6 +399,10 @@ def solve_variational(
         Factor on `lam` per coarser level (continuation: smooth first, detail last).
     fit_albedo : bool
         Refit the albedo by least squares after each accepted step.
+    fit_min_level : int
+        Refit the albedo only on this level and coarser ones (0 = all); the finer levels keep
+        it. With missing data (masked pixels, the margin of a non-periodic image) the albedo
+        trades against free height offsets between characteristic strips.
     z0 : ndarray, optional
         Starting height at full resolution (pixel units); flat by default.
     coarse_gn, mid_gn, fine_gn : int
@@ -338,10 +446,14 @@ def solve_variational(
         if lowfreq_weight > 0 and data_shape is not None:
             side = max(data_shape) * img.shape[1] / image.shape[1]
             lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
-        prob = _Problem(img, w, light_vec, lam * lam_growth**level, workers, lowfreq)
+        prob = _Problem(
+            img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data
+        )
+        if level > bound_max_level:
+            prob.albedo_min = 0.0
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = coarse_cg if level > 1 else fine_cg
-        z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo)
+        z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level)
     return z - z.mean(), albedo
 
 

@@ -35,7 +35,8 @@ from haptex_compile.frame_analysis import (
 )
 from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
 
-MAX_TABLE_NODES = 4_000_000  # per direction and speed; beyond this the grid is refused
+MAX_TABLE_NODES = 4_000_000
+LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the line's fastest speed  # per direction and speed; beyond this the grid is refused
 
 
 @dataclass(frozen=True)
@@ -100,8 +101,22 @@ def _direction_powers(
     nodes: np.ndarray,
     direction_deg: float,
     speeds: np.ndarray,
+    split_speeds: bool = True,
 ) -> np.ndarray:
-    """Mean channel powers [n_speed, 2, n_nodes] for one direction."""
+    """Mean channel powers [n_speed, 2, n_nodes] for one direction.
+
+    Lines must reach beyond the nodes by the distance covered in the window plus the filter's
+    settling time, which grows with speed; slow and fast speeds therefore get their own lines
+    (split at the geometric middle of the range) so slow speeds do not pay for long lines.
+    """
+    speeds = np.asarray(speeds, dtype=float)
+    if split_speeds and speeds.size > 1 and speeds.max() / speeds.min() > 3.0:
+        split = np.sqrt(speeds.min() * speeds.max())
+        slow = speeds <= split
+        out = np.empty((speeds.size, 2, nodes.shape[0]))
+        out[slow] = _direction_powers(surface, model, settings, nodes, direction_deg, speeds[slow], False)
+        out[~slow] = _direction_powers(surface, model, settings, nodes, direction_deg, speeds[~slow], False)
+        return out
     px = surface.pixel_size_mm
     sigma = settings.footprint_sigma_mm
     d = np.deg2rad(direction_deg)
@@ -110,7 +125,9 @@ def _direction_powers(
     a_nodes = nodes @ e
     b_nodes = nodes @ nrm
     s_max = float(speeds.max())
-    margin = s_max * (settings.frame_ms + settings.margin_ms) / 1000.0 + 3.0 * sigma + 2 * px
+    # Whole-line filtering only needs the lines to be long enough that the circular transform's
+    # wrap-around stays out of reach of the window: the weighting settles within about 60 ms.
+    margin = s_max * (settings.frame_ms + LINE_SETTLE_MS) / 1000.0 + 3.0 * sigma + 2 * px
     a0 = a_nodes.min() - margin
     n_a = scipy.fft.next_fast_len(int(np.ceil((a_nodes.max() + margin - a0) / px)) + 1, real=True)
     b0 = b_nodes.min() - 3.0 * sigma - 2 * px
@@ -118,8 +135,13 @@ def _direction_powers(
     a = a0 + np.arange(n_a) * px
     b = b0 + np.arange(n_b) * px
     # Same continuous surface as sample_height (cubic B-spline), evaluated in C by scipy.
-    x, y = pixel_coordinates(surface, a[None, :] * e[0] + b[:, None] * nrm[0], a[None, :] * e[1] + b[:, None] * nrm[1])
+    u = a[None, :] * e[0] + b[:, None] * nrm[0]
+    v = a[None, :] * e[1] + b[:, None] * nrm[1]
     mode = "grid-wrap" if _wraps(surface) else "mirror"
+    if mode == "grid-wrap":  # the array is one period: scipy wraps indices itself
+        x, y = u / px, v / px
+    else:
+        x, y = pixel_coordinates(surface, u, v)
     heights = ndimage.map_coordinates(spline_coefficients(surface), np.stack([y.ravel(), x.ravel()]), order=3,
                                       prefilter=False, mode=mode).reshape(x.shape)
     # Make each line's ends meet (remove the end-to-end ramp: a linear trend is invisible to the

@@ -73,7 +73,7 @@ class ThresholdCurves:
         f = np.asarray(freq_hz, dtype=float)
         x_nodes = np.log2(np.asarray(self.frequency_hz, dtype=float))
         y = 20.0 * np.log10(np.asarray(table_um, dtype=float))
-        positive = f > 0
+        positive = (f > 0) & np.isfinite(f)  # +inf (and NaN) weigh nothing; inf - inf would give NaN
         x = np.log2(np.where(positive, f, 1.0))
         slopes = np.diff(y) / np.diff(x_nodes)
         # Piecewise linear in (log2 f, dB) with the end slopes continued, written as a line plus

@@ -16,7 +16,7 @@ LOG = logging.getLogger("haptex.play")
 @click.option("--device", "device", default="sim", show_default=True,
               help="sim (emulated controller via pyusb), usb, null, or file:PATH (raw packets).")
 @click.option("--profile", "profile_path", type=click.Path(dir_okay=False), default=None,
-              help="Device profile TOML (default: the built-in HAPTEX 24-contactor profile).")
+              help="Device profile TOML (default: the built-in HAPTEX profile; for sim, null and file devices sized to the asset's array).")
 @click.option("--sweep", default=None, metavar="SPEC",
               help="Constant motion, e.g. speed=80,direction=0,duration=5[,u=0,v=0,phi=0] (mm/s, deg, s, mm).")
 @click.option("--trajectory", "trajectory_csv", type=click.Path(dir_okay=False), default=None,
@@ -65,6 +65,14 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
 
     data = read_asset(asset, load_surface=(mode == "direct"))
     profile = load_profile(profile_path)
+    if profile_path is None and device != "usb" and profile.count != data.n_contactors:
+        # No real device: the built-in profile's calibration with one channel per contactor of
+        # the asset's own array, so any scene plays on the simulator and the sinks.
+        from playback.device import DEFAULT_PROFILE, profile_from_dict
+
+        n = data.n_contactors
+        doc = {**DEFAULT_PROFILE, "contactors": {"count": n, "n_channels": n, "channel": list(range(n))}}
+        profile = profile_from_dict(doc, f"built-in profile for {n} contactors")
     if profile.count != data.n_contactors:
         raise InputError(asset, f"scene has {data.n_contactors} contactors, the device profile maps {profile.count}")
     if sweep is not None:

@@ -8,6 +8,7 @@ stderr is a terminal.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import sys
 from typing import Any, Callable
@@ -36,6 +37,7 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
     The wrapped command receives ``debug`` as a keyword argument only if it declares it.
     """
+    wants_debug = "debug" in inspect.signature(func).parameters
 
     @click.option("-v", "--verbose", count=True, help="More messages on stderr (repeatable).")
     @click.option("-q", "--quiet", count=True, help="Fewer messages on stderr (repeatable).")
@@ -43,6 +45,8 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(func)
     def wrapper(*args: Any, verbose: int, quiet: int, debug: bool, **kwargs: Any) -> Any:
         _configure_logging(verbose, quiet)
+        if wants_debug:
+            kwargs["debug"] = debug
         try:
             return func(*args, **kwargs)
         except (HaptexError, OSError) as exc:

@@ -1,0 +1,216 @@
+"""Heights from shading against ground truth (issue 7).
+
+Lambertian images (albedo 0.8) of the four known surfaces of ``haptex_compile.test_surfaces``
+(a sphere cap, a plain weave, smooth random bumps with RMS slope 0.2 on 20 µm pixels, a
+Brownian surface H = 0.7) under lights of slant 15-60°, plus overhead light (slant 0, where
+Tsai-Shah's df/dZ vanishes) and grazing light (80°). Each image is solved by Tsai & Shah (the
+paper's method, the baseline measured in the same run) and by the default solver, with the
+light given and with the light estimated from the image. Score: normalised RMS height error
+after the best affine fit ``h_true ~ a h + b`` (0 = perfect, 1 = nothing recovered). Time:
+wall-clock seconds per megapixel of the default solver (light given). The surfaces are
+periodic, rendered and solved as tiles (``periodic=True``); one extra row shows a
+non-periodic crop.
+
+The tactile error (mean a40 and a320 of the recovered heights against the true ones) needs
+``haptex_compile.tables.mean_amplitudes(height_um, pixel_size_um)``; the column appears when
+that function exists. :func:`cases` returns the heights so that the column can be added.
+
+    python bench/bench_shading.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from haptex_compile import test_surfaces as ts
+from haptex_compile.shading import (
+    Light,
+    normalised_height_error,
+    render_lambertian,
+    shape_from_shading,
+    tsai_shah,
+)
+
+PIXEL_UM = 20.0
+ALBEDO = 0.8
+LIGHTS = [(15.0, 30.0), (30.0, 120.0), (45.0, 200.0), (60.0, 300.0), (0.0, 0.0), (80.0, 45.0)]
+
+
+def _surfaces(n: int) -> dict[str, np.ndarray]:
+    shape = (n, n)
+    return {
+        "sphere cap (rim 45°)": ts.sphere_cap(shape, PIXEL_UM),
+        "woven (plain weave)": ts.woven_like(shape, PIXEL_UM),
+        "random bumps (slope 0.2)": ts.random_bumps(shape, PIXEL_UM, seed=1),
+        "Brownian H=0.7": ts.brownian_surface(shape, PIXEL_UM, hurst=0.7, seed=2),
+    }
+
+
+def _same_rms(height: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Recovered height with the truth's RMS and the sign of the best affine fit (µm)."""
+    h = height - height.mean()
+    t = truth - truth.mean()
+    rms_h = float(np.sqrt(np.mean(h * h)))
+    if rms_h == 0:
+        return h
+    sign = 1.0 if float(np.sum(h * t)) >= 0 else -1.0
+    return sign * h * (float(np.sqrt(np.mean(t * t))) / rms_h)
+
+
+def cases(quick: bool = False) -> list[dict]:
+    """All bench cases with their heights, for the tactile-error column.
+
+    Returns
+    -------
+    list of dict
+        Keys: ``surface``, ``slant_deg``, ``tilt_deg``, ``pixel_size_um``, ``periodic``,
+        ``height_true_um``, and for each method (``"tsai-shah"``, ``"default"``,
+        ``"default, light estimated"``) an entry in ``results``: a dict with ``height_um``
+        (recovered, scaled to the truth's RMS and sign), ``error`` (normalised height error),
+        ``seconds`` (wall clock) and, for the estimated light, ``light``.
+    """
+    n = 128 if quick else 256
+    out = []
+    for name, truth in _surfaces(n).items():
+        for slant, tilt in LIGHTS:
+            light = Light(slant, tilt)
+            img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)
+            results = {}
+            t0 = time.perf_counter()
+            h_ts = tsai_shah(img, light, pixel_size_um=PIXEL_UM)
+            results["tsai-shah"] = dict(height_um=h_ts, seconds=time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            r = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True)
+            results["default"] = dict(height_um=r.height, seconds=time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            r_est = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
+            results["default, light estimated"] = dict(
+                height_um=r_est.height, seconds=time.perf_counter() - t0, light=r_est.light
+            )
+            for res in results.values():
+                res["error"] = normalised_height_error(res["height_um"], truth)
+                res["height_um"] = _same_rms(res["height_um"], truth)
+            out.append(
+                dict(
+                    surface=name,
+                    slant_deg=slant,
+                    tilt_deg=tilt,
+                    pixel_size_um=PIXEL_UM,
+                    periodic=True,
+                    height_true_um=truth,
+                    results=results,
+                )
+            )
+    return out
+
+
+def _nonperiodic_row(n: int) -> dict:
+    """Random bumps rendered without wrap-around and solved as a plain image."""
+    truth = ts.random_bumps((n, n), PIXEL_UM, seed=4)
+    light = Light(45.0, 200.0)
+    img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=False)
+    r = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
+    ts_err = normalised_height_error(tsai_shah(img, light, pixel_size_um=PIXEL_UM), truth)
+    return dict(ts=ts_err, default=normalised_height_error(r.height, truth))
+
+
+def _timing(n: int, repeats: int = 2) -> tuple[float, float]:
+    """Seconds per megapixel of the default solver and of 50 Tsai-Shah iterations."""
+    truth = ts.random_bumps((n, n), PIXEL_UM, seed=5)
+    light = Light(45.0, 200.0)
+    img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)
+    best_sfs = best_ts = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True)
+        best_sfs = min(best_sfs, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        tsai_shah(img, light, pixel_size_um=PIXEL_UM)
+        best_ts = min(best_ts, time.perf_counter() - t0)
+    mp = n * n / 1e6
+    return best_sfs / mp, best_ts / mp
+
+
+def run(quick: bool = False) -> str:
+    """Run the bench and return a markdown report."""
+    try:
+        from haptex_compile import tables
+
+        mean_amplitudes = getattr(tables, "mean_amplitudes", None)
+    except ImportError:  # pragma: no cover - the lead's module
+        mean_amplitudes = None
+    rows = cases(quick)
+    n = rows[0]["height_true_um"].shape[0]
+    head = (
+        "| surface | slant, tilt (°) | Tsai-Shah error (baseline) | default error, light given |"
+        " ratio to baseline | default error, light estimated | estimated slant, tilt (°) |"
+    )
+    sep = "| --- | --- | --- | --- | --- | --- | --- |"
+    if mean_amplitudes is not None:
+        head += " tactile error a40 / a320 (default) |"
+        sep += " --- |"
+    lines = [
+        f"Shape from shading, {n} x {n} px of {PIXEL_UM:g} µm, albedo {ALBEDO}, periodic tiles;"
+        " error = normalised RMS height error after the best affine fit.",
+        "",
+        head,
+        sep,
+    ]
+    for c in rows:
+        res = c["results"]
+        e_ts, e_d, e_e = (res[k]["error"] for k in ("tsai-shah", "default", "default, light estimated"))
+        le = res["default, light estimated"]["light"]
+        ratio = e_d / e_ts if e_ts > 0 else float("nan")
+        line = (
+            f"| {c['surface']} | {c['slant_deg']:g}, {c['tilt_deg']:g} | {e_ts:.3f} | {e_d:.3f} |"
+            f" {ratio:.2f} | {e_e:.3f} | {le.slant_deg:.0f}±{le.slant_sd_deg:.0f},"
+            f" {le.tilt_deg:.0f}±{le.tilt_sd_deg:.0f} |"
+        )
+        if mean_amplitudes is not None:
+            t40, t320 = mean_amplitudes(c["height_true_um"], c["pixel_size_um"])
+            r40, r320 = mean_amplitudes(res["default"]["height_um"], c["pixel_size_um"])
+            line += f" {abs(r40 / t40 - 1):.0%} / {abs(r320 / t320 - 1):.0%} |"
+        lines.append(line)
+    # Summary against the issue's targets (slants 15-60°, light given / estimated).
+    lines += ["", "| surface | worst default error, 15-60°, light given | worst, light estimated |"
+              " worst Tsai-Shah |", "| --- | --- | --- | --- |"]
+    for name in dict.fromkeys(c["surface"] for c in rows):
+        sel = [c for c in rows if c["surface"] == name and 15 <= c["slant_deg"] <= 60]
+        worst = lambda k: max(c["results"][k]["error"] for c in sel)  # noqa: E731
+        lines.append(
+            f"| {name} | {worst('default'):.3f} | {worst('default, light estimated'):.3f} |"
+            f" {worst('tsai-shah'):.3f} |"
+        )
+    npr = _nonperiodic_row(n)
+    lines += [
+        "",
+        f"Non-periodic image (random bumps, {n} px, slant 45°, rendered with one-sided edge"
+        f" differences, solved with `periodic=False`): Tsai-Shah {npr['ts']:.3f}, default"
+        f" {npr['default']:.3f}.",
+    ]
+    tn = 512 if quick else 1024
+    sfs_mp, ts_mp = _timing(tn, repeats=1 if quick else 2)
+    lines += [
+        "",
+        "| timing at {0} x {0} | s per megapixel | ratio to Tsai-Shah (50 iterations) |".format(tn),
+        "| --- | --- | --- |",
+        f"| Tsai-Shah (baseline) | {ts_mp:.2f} | 1.00 |",
+        f"| default solver, light given | {sfs_mp:.2f} | {sfs_mp / ts_mp:.1f} |",
+    ]
+    if mean_amplitudes is None:
+        lines += ["", "Tactile error: `haptex_compile.tables.mean_amplitudes` does not exist yet;"
+                  " `cases()` returns the heights for it."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small images (under a minute)")
+    args = parser.parse_args()
+    print(run(quick=args.quick))
+
+
+if __name__ == "__main__":
+    main()

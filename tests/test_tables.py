@@ -1,0 +1,214 @@
+"""Speed/direction lookup tables (issue 4) against the reference renderer.
+
+Expected values come from the reference renderer evaluated at the same (position, speed,
+direction), from the symmetry of the problem, or from closed forms for gratings (a sinusoid along
+u seen at direction d and speed s is a tone at s |cos d| / lambda).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.compile import _as_player_tables, build_checked_tables, check_tables, relative_errors
+from haptex_compile.fractal import brownian_surface
+from haptex_compile.frame_analysis import AnalysisSettings
+from haptex_compile.render import point_intensities, straight_path
+from haptex_compile.scene import default_scene
+from haptex_compile.surface import Surface, periodic_surface_from_tile, sample_height
+from haptex_compile.tables import Tables, build_tables, table_grid
+
+MODEL = TwoColourModel()
+SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
+
+
+def reference(surface: Surface, u: float, v: float, speed: float, direction: float,
+              settings: AnalysisSettings = SETTINGS) -> tuple[float, float]:
+    d = MODEL.decompose(*point_intensities(surface, MODEL, settings, straight_path(u, v, speed, direction), 0.0))
+    return float(d.a40), float(d.a320)
+
+
+@pytest.fixture(scope="module")
+def brownian_small() -> Surface:
+    """5 x 5 mm Brownian surface (H = 0.5, 20 µm pixels), not periodic: edges are mirrored."""
+    return Surface(brownian_surface((250, 250), 0.5, pixel_size_um=20.0, rms_um=10.0, seed=1), 20.0)
+
+
+@pytest.fixture(scope="module")
+def brownian_tile() -> Surface:
+    """2.56 mm periodic Brownian tile."""
+    h = brownian_surface((128, 128), 0.5, pixel_size_um=20.0, rms_um=10.0, seed=4, periodic=True)
+    return periodic_surface_from_tile(h, 20.0)
+
+
+def grating(lambda_mm: float = 1.0, amp_um: float = 5.0, periods: int = 2) -> Surface:
+    """Periodic sinusoid along u (ridges along v), 20 µm pixels."""
+    nx = int(round(periods * lambda_mm * 50))
+    u = np.arange(nx) * 0.02
+    return periodic_surface_from_tile(np.tile(amp_um * np.sin(2 * np.pi * u / lambda_mm), (16, 1)), 20.0)
+
+
+def tone_pair(freq_hz: float, amp_um: float) -> tuple[float, float]:
+    d = MODEL.decompose(*MODEL.tone_intensities(freq_hz, amp_um))
+    return float(d.a40), float(d.a320)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_table_nodes_match_the_reference_renderer(brownian_small):
+    grid = table_grid(brownian_small, 0.25)
+    dirs, speeds = np.array([0.0, 60.0, 130.0]), np.array([25.0, 100.0])
+    tab = build_tables(brownian_small, MODEL, SETTINGS, dirs, speeds, grid)
+    assert tab.a40.shape == (3, 2) + grid.shape and grid.shape == (21, 21)
+    nodes = grid.nodes_mm()
+    rng = np.random.default_rng(0)
+    errs = []
+    for di, d in enumerate(dirs):
+        for si, s in enumerate(speeds):
+            for _ in range(5):
+                j, i = rng.integers(grid.shape[0]), rng.integers(grid.shape[1])
+                r40, r320 = reference(brownian_small, *nodes[j, i], s, d)
+                errs.append(relative_errors(MODEL, tab.a40[di, si, j, i], tab.a320[di, si, j, i], r40, r320))
+    errs = np.array(errs)
+    assert np.sqrt(np.mean(errs**2)) < 0.025 and errs.max() < 0.05
+
+
+def test_periodic_tables_store_one_period_and_wrap(brownian_tile):
+    grid = table_grid(brownian_tile, 0.25)
+    assert grid.periodic and grid.shape == (11, 11)  # ceil(2.56 mm / 0.25 mm) nodes per period
+    assert np.allclose(grid.basis_mm, np.diag([2.56, 2.56]) / 11)
+    dirs, speeds = np.array([0.0, 45.0]), np.array([60.0])
+    tab = build_tables(brownian_tile, MODEL, SETTINGS, dirs, speeds, grid)
+    period = brownian_tile.lattice_mm()
+    nodes = grid.nodes_mm()
+    for j in (0, 4, 9):
+        p = nodes[j, 0]
+        for di, d in enumerate(dirs):
+            # The surface repeats exactly, so the reference one period away is the same frame ...
+            here = np.array(reference(brownian_tile, *p, 60.0, d))
+            there = np.array(reference(brownian_tile, *(p + period[0] - 2 * period[1]), 60.0, d))
+            assert np.allclose(here, there, rtol=1e-9, atol=1e-12)
+            # ... and it is what the node i = 0 stores.
+            err = relative_errors(MODEL, tab.a40[di, 0, j, 0], tab.a320[di, 0, j, 0], *there)
+            assert err < 0.03
+    # Playback wraps: a point and its images by whole periods read the same amplitudes.
+    interp = _as_player_tables(tab, SETTINGS.frame_ms).interpolator
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0, 2.56, 20), rng.uniform(0, 2.56, 20)
+    s, d = np.full(20, 60.0), rng.uniform(0, 45, 20)
+    a = interp(u, v, s, d)
+    b = interp(u + 3 * period[0, 0], v - 2 * period[1, 1], s, d)
+    assert np.allclose(a[0], b[0], rtol=1e-5) and np.allclose(a[1], b[1], rtol=1e-5)
+
+
+@pytest.mark.parametrize("speed", [30.0, 200.0])
+def test_reversed_direction_feels_the_same(brownian_small, speed):
+    """Reversing the motion reverses the signal in time; the zero-phase weighting and the
+    symmetric frame window leave the envelope power unchanged."""
+    for u, v, d in ((2.1, 2.6, 10.0), (3.3, 1.7, 75.0), (1.0, 4.0, 150.0)):
+        fwd = np.array(point_intensities(brownian_small, MODEL, SETTINGS, straight_path(u, v, speed, d), 0.0))
+        back = np.array(point_intensities(brownian_small, MODEL, SETTINGS, straight_path(u, v, speed, d + 180.0), 0.0))
+        assert np.allclose(fwd, back, rtol=1e-3)
+    with pytest.raises(ValueError, match="180"):
+        build_tables(brownian_small, MODEL, SETTINGS, np.array([0.0, 180.0]), np.array([50.0]),
+                     table_grid(brownian_small, 1.0))
+
+
+def test_gratings_have_their_closed_form_tables():
+    """On a grating, every table value is the two-colour pair of the tone s |cos d| / lambda."""
+    surf = grating(lambda_mm=1.0, amp_um=5.0)
+    grid = table_grid(surf, 0.25)
+    dirs, speeds = np.array([0.0, 60.0]), np.array([40.0, 160.0])
+    tab = build_tables(surf, MODEL, SETTINGS, dirs, speeds, grid)
+    for di, d in enumerate(dirs):
+        for si, s in enumerate(speeds):
+            want = tone_pair(s * abs(np.cos(np.deg2rad(d))) / 1.0, 5.0)
+            assert np.allclose(tab.a40[di, si], want[0], rtol=0.01, atol=1e-3)
+            assert np.allclose(tab.a320[di, si], want[1], rtol=0.01, atol=1e-3)
+
+
+def test_check_tables_measures_interpolation_between_nodes():
+    """check_tables' families hit the mid-points between nodes; on a grating the error there is known.
+
+    Directions 0 and 90 deg at 80 mm/s: the mid-direction 45 deg (or 135) is a tone at 80/sqrt(2) Hz
+    while playback averages the 80 Hz pair and silence. Speeds 40 and 160 at 0 deg: the mid-speed 80
+    mm/s is an 80 Hz tone while playback averages the 40 Hz and 160 Hz pairs.
+    """
+    surf = grating(lambda_mm=1.0, amp_um=5.0)
+    grid = table_grid(surf, 0.25)
+    amp = 5.0
+
+    tab = build_tables(surf, MODEL, SETTINGS, np.array([0.0, 90.0]), np.array([80.0]), grid)
+    stats = check_tables(surf, MODEL, SETTINGS, tab, seed=3, per_family=4)
+    mid = np.array(tone_pair(80.0 / np.sqrt(2.0), amp))
+    played = 0.5 * np.array(tone_pair(80.0, amp))
+    want = float(relative_errors(MODEL, played[0], played[1], mid[0], mid[1]))
+    assert want > 0.2  # a large, easily measured interpolation error
+    assert stats["rms_rel_error_direction"] == pytest.approx(want, rel=0.03)
+    # At node directions and speeds only the position varies, and a grating's tables are flat.
+    assert stats["rms_rel_error_position"] < 0.01
+
+    tab = build_tables(surf, MODEL, SETTINGS, np.array([0.0]), np.array([40.0, 160.0]), grid)
+    stats = check_tables(surf, MODEL, SETTINGS, tab, seed=4, per_family=4)
+    ref = np.array(tone_pair(80.0, amp))
+    played = 0.5 * (np.array(tone_pair(40.0, amp)) + np.array(tone_pair(160.0, amp)))  # linear in log speed
+    want = float(relative_errors(MODEL, played[0], played[1], ref[0], ref[1]))
+    assert want > 0.05
+    # The speed family keeps the node direction (0 deg): exactly the case above.
+    assert stats["rms_rel_error_speed"] == pytest.approx(want, rel=0.03)
+
+
+def test_check_tables_detects_wrong_tables(brownian_tile):
+    grid = table_grid(brownian_tile, 0.25)
+    tab = build_tables(brownian_tile, MODEL, SETTINGS, np.arange(6) * 30.0, np.array([40.0, 80.0]), grid)
+    good = check_tables(brownian_tile, MODEL, SETTINGS, tab, seed=0, per_family=4)
+    bad_tab = Tables(1.5 * tab.a40, 1.5 * tab.a320, tab.intensity_p, tab.intensity_np, tab.out_of_gamut,
+                     tab.direction_deg, tab.speed_mm_s, tab.grid)
+    bad = check_tables(brownian_tile, MODEL, SETTINGS, bad_tab, seed=0, per_family=4)
+    # Same samples (same seed): every amplitude 50 % too large, so the error is 0.5 +- the tables' own.
+    assert abs(bad["rms_rel_error"] - 0.5) <= good["max_rel_error"] * 1.5 + 1e-3
+    assert bad["n_check_samples"] == good["n_check_samples"] == 12
+
+
+def test_build_checked_tables_meets_the_tolerance_and_stores_stats(brownian_tile):
+    scene = dataclasses.replace(default_scene(), tolerance=0.05, speed_range_mm_s=(30.0, 120.0))
+    tables, stats, plan = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
+    for key in ("rms_rel_error", "max_rel_error", "p95_rel_error", "n_check_samples", "tolerance",
+                "tolerance_met", "refinements", "rms_rel_error_direction", "rms_rel_error_speed",
+                "rms_rel_error_position"):
+        assert key in stats
+    assert stats["tolerance_met"] and stats["rms_rel_error"] <= 0.05 and stats["tolerance"] == 0.05
+    assert stats["refinements"][-1]["rms_rel_error"] == stats["rms_rel_error"]
+    assert tables.speed_mm_s[0] == pytest.approx(30.0) and tables.speed_mm_s[-1] == pytest.approx(120.0)
+    assert np.all((tables.direction_deg >= 0) & (tables.direction_deg < 180))
+    # The stored figure is a measurement: a fresh sample of the same tables agrees with it.
+    fresh = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=99)
+    assert fresh["rms_rel_error"] <= 2.0 * max(stats["rms_rel_error"], 0.01)
+
+
+def test_build_checked_tables_refines_until_the_tolerance_is_met():
+    """A grating at 45-degree steps misses 5 %: the compiler must add direction nodes."""
+    surf = grating(lambda_mm=1.0, amp_um=5.0)
+    scene = dataclasses.replace(default_scene(), tolerance=0.05, speeds_mm_s=(80.0,))
+    tables, stats, plan = build_checked_tables(surf, MODEL, SETTINGS, scene, seed=0)
+    history = stats["refinements"]
+    assert len(history) >= 2 and history[0]["rms_rel_error"] > 0.05
+    assert history[-1]["directions"] > history[0]["directions"]
+    assert stats["tolerance_met"] and stats["rms_rel_error"] <= 0.05
+
+
+def test_tables_and_renderer_sample_the_same_surface(brownian_small):
+    """Both go through the same continuous (B-spline) surface: heights match scipy's evaluation."""
+    from scipy import ndimage
+
+    from haptex_compile.surface import pixel_coordinates, spline_coefficients
+
+    rng = np.random.default_rng(5)
+    u, v = rng.uniform(-3, 8, 200), rng.uniform(-3, 8, 200)  # inside and beyond the edges (mirror)
+    x, y = pixel_coordinates(brownian_small, u, v)
+    scipy_h = ndimage.map_coordinates(spline_coefficients(brownian_small), np.stack([y, x]), order=3,
+                                      prefilter=False, mode="mirror")
+    assert np.allclose(sample_height(brownian_small, u, v), scipy_h, atol=1e-9)
