@@ -160,7 +160,8 @@ def run(quick: bool = False) -> str:
     ]
     for c in rows:
         res = c["results"]
-        e_ts, e_d, e_e = (res[k]["error"] for k in ("tsai-shah", "default", "default, light estimated"))
+        keys = ("tsai-shah", "default", "default, light estimated")
+        e_ts, e_d, e_e = (res[k]["error"] for k in keys)
         le = res["default, light estimated"]["light"]
         ratio = e_d / e_ts if e_ts > 0 else float("nan")
         line = (

@@ -13,7 +13,9 @@ Run ``python bench/bench_tables.py [--quick]``. Prints markdown tables:
    log-uniform in 10-200 mm/s (so between nodes), directions and array rotations uniform, 24
    contactors; the reference is computed once per surface and shared by the tolerances;
 2. per-frame playback cost: one ``TableInterpolator`` call for 24 and for 1000 contactors against
-   the reference renderer (the baseline, measured in the same run) for 24 contactors, one frame;
+   two baselines measured in the same run: the reference renderer (``render_frames``, 24
+   contactors, one frame; scaled linearly to 1000) and a vectorised direct renderer of the paper's
+   kind (B-spline sampling of 128 heights per contactor + the literal FFT, :mod:`haptex_compile.literal`);
 3. point model against footprint 0.25 mm: relative error of interpolating channel intensities
    half-way between two nodes (direction steps 45, 15, 5 deg; speed ratios 2, 1.41, 1.19) on a
    Brownian surface, H = 0.45, 20 µm pixels, 57 mm/s (the DOMAIN table), from the reference
@@ -38,6 +40,7 @@ from haptex_compile.surface import Surface, periodic_surface_from_tile
 
 PHOTO = Path(__file__).resolve().parents[1].parent / "shared" / "fabrics" / "plain-2000px.jpg"
 MODEL = TwoColourModel()
+FOOTPRINT_SAMPLES = {True: 2, False: 24}
 SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
 
 
@@ -46,7 +49,7 @@ SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
 
 
 def brownian(quick: bool) -> tuple[str, Surface]:
-    n = 500 if quick else 1000
+    n = 250 if quick else 1000
     h = brownian_surface((n, n), 0.5, pixel_size_um=20.0, rms_um=10.0, seed=0)
     return f"(a) Brownian H=0.5, {n // 50} x {n // 50} mm, 20 µm px", Surface(h, 20.0)
 
@@ -74,8 +77,8 @@ def photo(quick: bool) -> tuple[str, Surface | None, str]:
     note = "2000 px"
     if quick:
         ny, nx = grey.shape
-        grey = grey[ny // 2 - 300: ny // 2 + 300, nx // 2 - 300: nx // 2 + 300]
-        note = "600 px centre crop (quick)"
+        grey = grey[ny // 2 - 200: ny // 2 + 200, nx // 2 - 200: nx // 2 + 200]
+        note = "400 px centre crop (quick)"
     t0 = time.perf_counter()
     res = photo_surface(grey, 20.0, SourceOptions(), PHOTO.name, {})
     dt = time.perf_counter() - t0
@@ -172,18 +175,54 @@ def tolerance_rows(name: str, surface: Surface, samples: Samples, tolerances: li
     return rows, last
 
 
-def playback_cost_rows(tables, samples: Samples) -> list[str]:
+def _reference_frame_seconds(surface: Surface, contactors: np.ndarray, reps: int) -> float:
+    """render_frames for one frame at 80 mm/s (median of `reps`)."""
+    def traj(t):
+        t = np.asarray(t, dtype=float)
+        return 1.0 + 80.0 * np.cos(0.5) * t, 1.0 + 80.0 * np.sin(0.5) * t, np.full_like(t, 20.0)
+
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        render_frames(surface, MODEL, SETTINGS, contactors, np.array([0.0]), traj)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _literal_direct_seconds(surface: Surface, n: int) -> float:
+    """A vectorised direct renderer of the paper's kind: sample 128 heights per contactor along a
+    straight path and run the literal 25 ms FFT (the issue's ~0.26 ms class of baseline)."""
+    from haptex_compile.literal import literal_frame_amplitudes, literal_inverse_thresholds
+    from haptex_compile.surface import sample_height
+
+    rng = np.random.default_rng(5)
+    u0, v0 = rng.uniform(0, 5, (n, 1)), rng.uniform(0, 5, (n, 1))
+    t = (np.arange(128) - 63.5) / 5120.0
+    curves = MODEL.thresholds
+    inv = literal_inverse_thresholds(128, 5120.0, curves)  # once, as a renderer would
+
+    def frame():
+        h = sample_height(surface, u0 + 80.0 * t, v0 + 20.0 * t)
+        return literal_frame_amplitudes(h, 5120.0, curves, inverse_thresholds=inv)
+
+    return _time_call(frame)
+
+
+def playback_cost_rows(name: str, surface: Surface, tables, quick: bool) -> list[str]:
     interp = _as_player_tables(tables, SETTINGS.frame_ms).interpolator
     rng = np.random.default_rng(3)
-    out = []
-    ref = samples.seconds_per_frame_24
+    contactors = default_scene().contactors_mm
+    ref24 = _reference_frame_seconds(surface, contactors, 1 if quick else 3)
+    out = [f"| {name}: reference renderer (render_frames), 24 contactors, 1 frame at 80 mm/s | {1e3 * ref24:.0f} ms | | |"]
     for n in (24, 1000):
         u, v = rng.uniform(0, 10, n), rng.uniform(0, 10, n)
         s, d = rng.uniform(10, 200, n), rng.uniform(0, 360, n)
         t = _time_call(lambda: interp(u, v, s, d))
-        base = ref * n / 24.0
-        out.append(f"| tables, {n} contactors | {1e6 * t:.1f} µs | reference {1e3 * base:.0f} ms"
-                   f"{'' if n == 24 else ' (24-contactor time x ' + str(n // 24) + ')'} | {base / t:,.0f} x |")
+        lit = _literal_direct_seconds(surface, n)
+        ref = ref24 * n / 24.0
+        out.append(f"| tables (TableInterpolator), {n} contactors | {1e6 * t:.1f} µs "
+                   f"| {1e3 * ref:.0f} ms{'' if n == 24 else ' (24-contactor time x ' + f'{n / 24:.1f})'}; literal direct FFT renderer {1e3 * lit:.2f} ms "
+                   f"| {ref / t:,.0f} x; {lit / t:.1f} x |")
     return out
 
 
@@ -192,7 +231,7 @@ def footprint_rows(quick: bool) -> list[str]:
     h = brownian_surface((n_px, n_px), 0.45, pixel_size_um=20.0, rms_um=10.0, seed=7)
     surf = Surface(h, 20.0)
     w = surf.extent_mm[0]
-    n_samples = 5 if quick else 24
+    n_samples = FOOTPRINT_SAMPLES[quick]
     speed = 57.0
     rows = []
     for sigma in (0.0, 0.25):
@@ -224,13 +263,17 @@ def footprint_rows(quick: bool) -> list[str]:
 
 def run(quick: bool = False) -> str:
     """All tables as one markdown string."""
-    tolerances = [0.10, 0.05, 0.02, 0.01] + ([] if quick else [0.005])
-    n_strokes, per_stroke, n_cont = (3, 1, 6) if quick else (8, 3, 24)
+    tolerances = [0.05] if quick else [0.10, 0.05, 0.02, 0.01, 0.005]
+    n_strokes, per_stroke, n_cont = (2, 1, 4) if quick else (8, 3, 24)
     surfaces = [brownian(quick), twill()]
-    ph = photo(quick)
-    notes = [ph[2]]
-    if ph[1] is not None:
-        surfaces.append((ph[0], ph[1]))
+    notes = []
+    if quick:
+        notes.append("(c) photo: skipped in --quick (its compile alone takes tens of seconds); run without --quick")
+    else:
+        ph = photo(quick)
+        notes.append(ph[2])
+        if ph[1] is not None:
+            surfaces.append((ph[0], ph[1]))
     head = ["| surface | tolerance | compile time | nodes dir x speed x j x i (spacing) | table size | stored RMS error "
             "| playback RMS error vs reference | playback max error | samples |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -239,18 +282,17 @@ def run(quick: bool = False) -> str:
         samples = reference_samples(surf, n_strokes, per_stroke, n_cont)
         r, tables = tolerance_rows(name, surf, samples, tolerances)
         rows += r
-        cost.append(f"| {name}: reference renderer, 24 contactors, one frame (baseline) | "
-                    f"{1e3 * samples.seconds_per_frame_24:.0f} ms | | 1 x |")
-        cost += playback_cost_rows(tables, samples)
+        cost += playback_cost_rows(name, surf, tables, quick)
     fp = footprint_rows(quick)
     parts = [
         "### Tables: speed against error (default scene: 10-200 mm/s, all directions, footprint 0.25 mm)", "",
         *head, *rows, "",
         *(f"- {n}" for n in notes if n), "",
         "### Per-frame playback cost (tables from the tightest tolerance above)", "",
-        "| what | time per frame | reference | ratio |", "| --- | --- | --- | --- |", *cost, "",
+        "| what | time per frame | baselines: reference renderer; vectorised literal renderer | ratio (baseline / tables) |",
+        "| --- | --- | --- | --- |", *cost, "",
         f"### Interpolation half-way between nodes (Brownian H = 0.45, 20 µm px, 57 mm/s; RMS over "
-        f"{5 if quick else 24} positions x 2 channels of |mean of nodes - mid| / mid)", "",
+        f"{FOOTPRINT_SAMPLES[quick]} positions x 2 channels of |mean of nodes - mid| / mid)", "",
         "| model | 45° step | 15° step | 5° step | speed ratio 2 | ratio 1.41 | ratio 1.19 |",
         "| --- | --- | --- | --- | --- | --- | --- |", *fp, "",
     ]

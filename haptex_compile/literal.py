@@ -30,8 +30,18 @@ def literal_matrix(thresholds: ThresholdCurves, base_frequencies_hz: tuple[float
     return np.stack([1.0 / thresholds.p(f), 1.0 / thresholds.np_(f)])
 
 
+def literal_inverse_thresholds(n: int, rate_hz: float, thresholds: ThresholdCurves) -> np.ndarray:
+    """1/T_p and 1/T_np (1/µm) at the FFT bins f > 0 of an n-sample frame: array [2, n // 2].
+
+    Evaluating the curves costs far more than a frame's FFT; a renderer computes this once.
+    """
+    f = np.fft.rfftfreq(n, d=1.0 / rate_hz)[1:]
+    return np.stack([1.0 / thresholds.p(f), 1.0 / thresholds.np_(f)])
+
+
 def literal_channel_intensities(
-    signal_um: np.ndarray, rate_hz: float, thresholds: ThresholdCurves, normalisation: str = "peak"
+    signal_um: np.ndarray, rate_hz: float, thresholds: ThresholdCurves, normalisation: str = "peak",
+    inverse_thresholds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(I_p, I_np) of frames by the paper's rule: sum over bins f > 0 of F(f) / T_c(f).
 
@@ -49,6 +59,8 @@ def literal_channel_intensities(
         spectrum is further divided by the window's sum-to-peak ratio (1/0.42 for Blackman), so
         the *sum* over its bins is A (far from DC); not in the paper, it isolates the leakage
         from the normalisation in the benchmark.
+    inverse_thresholds : ndarray [2, n // 2], optional
+        :func:`literal_inverse_thresholds` for this n and rate, precomputed.
 
     Returns
     -------
@@ -71,9 +83,9 @@ def literal_channel_intensities(
         # Blackman's DFT at whole-bin offsets 0, +-1, +-2 is 0.42, -0.25, 0.04 (relative):
         # an on-bin sine's bins sum to (0.42 + 0.5 + 0.08) / 0.42 times its peak.
         amp = amp * 0.42
-    f = np.fft.rfftfreq(n, d=1.0 / rate_hz)
-    amp, f = amp[..., 1:], f[1:]  # bins f > 0 only (the paper drops DC)
-    return amp @ (1.0 / thresholds.p(f)), amp @ (1.0 / thresholds.np_(f))
+    inv = literal_inverse_thresholds(n, rate_hz, thresholds) if inverse_thresholds is None else inverse_thresholds
+    amp = amp[..., 1:]  # bins f > 0 only (the paper drops DC)
+    return amp @ inv[0], amp @ inv[1]
 
 
 def literal_frame_amplitudes(
@@ -82,6 +94,7 @@ def literal_frame_amplitudes(
     thresholds: ThresholdCurves,
     base_frequencies_hz: tuple[float, float] = (40.0, 320.0),
     normalisation: str = "peak",
+    inverse_thresholds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(a40, a320) in µm of frames by the paper's literal method (negative results clipped to 0).
 
@@ -97,13 +110,15 @@ def literal_frame_amplitudes(
         The two colours (40 and 320 Hz in the paper).
     normalisation : {"peak", "sum"}
         See :func:`literal_channel_intensities` (``"peak"`` is the paper's).
+    inverse_thresholds : ndarray [2, n // 2], optional
+        :func:`literal_inverse_thresholds`, precomputed (a renderer does this once).
 
     Returns
     -------
     (a40, a320) : ndarrays [...]
         Amplitudes (µm peak), finite and >= 0 for finite input.
     """
-    ip, inp = literal_channel_intensities(signal_um, rate_hz, thresholds, normalisation)
+    ip, inp = literal_channel_intensities(signal_um, rate_hz, thresholds, normalisation, inverse_thresholds)
     minv = np.linalg.inv(literal_matrix(thresholds, base_frequencies_hz))
     a40 = minv[0, 0] * ip + minv[0, 1] * inp
     a320 = minv[1, 0] * ip + minv[1, 1] * inp

@@ -269,7 +269,9 @@ def _panel_map(fig: "Figure", ax: "Axes", u: np.ndarray, v: np.ndarray, a: np.nd
     ax.annotate("", xy=c + d, xytext=c - d, arrowprops=dict(arrowstyle="-|>", color="white", lw=2))
     ax.set_xlabel("u (mm)")
     ax.set_ylabel("v (mm)")
-    ax.set_title(f"{name} at {speed:g} mm/s, {direction:g}° (arrow)\nmean {a.mean():.3g} µm, max {a.max():.3g} µm", fontsize=9)
+    uniform = float(np.ptp(a)) <= 0.01 * float(a.max())
+    note = "uniform: the footprint covers the repeat" if uniform else f"mean {a.mean():.3g} µm"
+    ax.set_title(f"{name} at {speed:g} mm/s, {direction:g}° (arrow)\n{note}, max {a.max():.3g} µm", fontsize=9)
 
 
 def _panel_speed(ax: "Axes", tables: Any, u_mm: float, v_mm: float, speed: float, direction: float) -> None:
@@ -397,13 +399,15 @@ def _timeline(fig: "Figure", ax: "Axes", t: np.ndarray, a: np.ndarray, late: np.
     n_c = a.shape[1]
     cmap = colormaps["viridis"]
     norm = Normalize(0, max(n_c - 1, 1))
+    # Steps: the device holds a frame's amplitudes for the whole frame.
     for i in range(n_c):
-        ax.plot(t, a[:, i], color=cmap(norm(i)), lw=0.8)
+        ax.plot(t, a[:, i], color=cmap(norm(i)), lw=0.7, alpha=0.45, drawstyle="steps-mid", label=f"_c{i}")
+    ax.plot(t, a.mean(axis=1), color="black", lw=2, drawstyle="steps-mid", label="mean over contactors")
     for tl in t[late]:
         ax.axvspan(tl - frame_s / 2, tl + frame_s / 2, color="red", alpha=0.2, lw=0)
     if skipped_t.size:
         ax.plot(skipped_t, np.zeros_like(skipped_t), "kx", ms=6, label="skipped frame(s) after this one")
-        ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="lower right")
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="contactor index")
     ax.set_xlabel("trajectory time (s)")
     ax.set_ylabel(f"{name} (µm, peak, before calibration)")

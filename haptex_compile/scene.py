@@ -140,6 +140,11 @@ def scene_from_dict(data: dict, text: str = "", base_dir: str | None = None) -> 
 
         p = Path(thresholds)
         thresholds = str(p if p.is_absolute() else Path(base_dir) / p)
+    for section, key in (("motion", "tolerance"), ("render", "frame_ms"), ("render", "summation_exponent"),
+                         ("render", "footprint_sigma_mm"), ("render", "grid_spacing_mm")):
+        value = data.get(section, {}).get(key)
+        if value is not None and not np.isfinite(float(value)):
+            raise ValueError(f"{section}.{key} must be a finite number")
     return Scene(
         contactors_mm=contactors,
         speeds_mm_s=speeds,

@@ -12,7 +12,6 @@ albedo); :func:`scale_relief` fixes it from a stated relief.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -311,8 +310,8 @@ def _moment_albedo(values: np.ndarray, slant_deg: float) -> float:
     """Albedo from the mean and variance of the intensities, for a known slant.
 
     For a stationary surface the linear term of ``R`` averages out, so with isotropic slopes
-    (``<g²> = 2 <g_l²>``) to second order ``mean = a cos s (1 - var / (a² sin² s))``: a quadratic
-    in the albedo ``a``. Bounded below by the brightest pixels (``R <= 1``).
+    (``<g²> = 2 <g_l²>``) to second order ``mean = a cos s (1 - var / (a² sin² s))``: a
+    quadratic in the albedo ``a``. Bounded below by the brightest pixels (``R <= 1``).
     """
     v = values[np.isfinite(values)]
     if v.size == 0:
@@ -369,7 +368,10 @@ def _tilt_axis(img: np.ndarray, valid: np.ndarray) -> tuple[float, float, float]
     doubled = []
     for i in range(4):
         for j in range(4):
-            sl = (slice(i * rows // 4, (i + 1) * rows // 4), slice(j * cols // 4, (j + 1) * cols // 4))
+            sl = (
+                slice(i * rows // 4, (i + 1) * rows // 4),
+                slice(j * cols // 4, (j + 1) * cols // 4),
+            )
             a, _ = axis(sl)
             doubled.append(2 * a)
     c, s = np.mean(np.cos(doubled)), np.mean(np.sin(doubled))
@@ -449,7 +451,10 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     blocks = []
     for i in range(4):
         for j in range(4):
-            sl = (slice(i * rows // 4, (i + 1) * rows // 4), slice(j * cols // 4, (j + 1) * cols // 4))
+            sl = (
+                slice(i * rows // 4, (i + 1) * rows // 4),
+                slice(j * cols // 4, (j + 1) * cols // 4),
+            )
             vb = img[sl][valid[sl]]
             if vb.size >= 16 and float(np.std(vb)) > 1e-4:
                 blocks.append(_moment_slant(vb))
@@ -539,7 +544,9 @@ def _refine_light(img, valid, slant, tilt, slant_sd_stat, side=160):
 # The driver
 
 
-def _brightness_start(img: np.ndarray, valid: np.ndarray, albedo: float, cos_s: float) -> np.ndarray:
+def _brightness_start(
+    img: np.ndarray, valid: np.ndarray, albedo: float, cos_s: float
+) -> np.ndarray:
     """Starting height for near-overhead light: bright = high (convex surfaces), with the slope
     magnitude that the intensities imply (``|g|² = (albedo cos s / I)² - 1``); pixel units."""
     fill = np.where(valid, img, np.mean(img[valid]) if valid.any() else 0.5)
@@ -573,12 +580,21 @@ def shape_from_shading(
     light : Light, optional
         The light; estimated with :func:`estimate_light` when omitted.
     method : str
-        ``"default"`` (Gauss-Newton on the exact Lambertian energy, coarse to fine, see
-        :mod:`haptex_compile.shading_variational`), ``"accurate"`` (the same with more
-        iterations, about 3 x slower) or ``"tsai-shah"`` (:func:`tsai_shah`, for comparison).
+        ``"default"``: Gauss-Newton on the exact Lambertian energy with a small thin-plate
+        term, coarse to fine, FFT-preconditioned conjugate gradients, albedo fitted by least
+        squares and bounded below by the brightest pixels (see
+        :mod:`haptex_compile.shading_variational`); ``"accurate"``: the same with more
+        iterations (about 3 x slower, rarely better); ``"tsai-shah"``: :func:`tsai_shah`, for
+        comparison. Light straight above (slant < 5°) makes the slopes' signs unobservable:
+        the default then starts from a bright-is-high guess (warned, method suffixed).
     periodic : bool
-        The image is a tile: the height wraps seamlessly. Otherwise the image is embedded in a
-        larger periodic domain whose margin carries no data, so its edges are free.
+        The image is a tile: the height wraps seamlessly (all operators are periodic).
+        Otherwise the image is embedded in a larger periodic domain whose margin carries no
+        data, so its edges are free, and a weak prior that the fabric lies flat on average
+        (no slope across the light at wavelengths longer than the image) removes the ramps
+        that shading cannot see. Periodic tiles are much better posed: a strip along the light
+        closes on itself, so its height offset is fixed (measured on 256 px random bumps at
+        45°: 0.07 periodic, 0.30 as a plain image).
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
@@ -633,7 +649,8 @@ def shape_from_shading(
     if light.slant_deg < MIN_SLANT_DEG:
         # Only |slope| is observable (an eikonal problem without sign): start from a convex
         # guess so that Gauss-Newton has a non-zero Jacobian.
-        albedo = max(float(np.percentile(img[valid], 99.5)) / np.cos(np.deg2rad(light.slant_deg)), 1e-3)
+        cos_s = np.cos(np.deg2rad(light.slant_deg))
+        albedo = max(float(np.percentile(img[valid], 99.5)) / cos_s, 1e-3)
         warnings.append(
             f"light along the view axis (slant {light.slant_deg:.1f}° < {MIN_SLANT_DEG}°): the"
             " slopes' signs are not observable; fell back to a bright-is-high start (convex"
@@ -650,7 +667,10 @@ def shape_from_shading(
         dom_img, dom_w = img, valid
     else:
         pad = max(8, int(0.08 * max(rows, cols)))
-        shape = (sfft.next_fast_len(rows + pad, real=True), sfft.next_fast_len(cols + pad, real=True))
+        shape = (
+            sfft.next_fast_len(rows + pad, real=True),
+            sfft.next_fast_len(cols + pad, real=True),
+        )
         dom_img = np.full(shape, float(np.mean(img[valid])))
         dom_img[:rows, :cols] = np.where(valid, img, dom_img[0, 0])
         dom_w = np.zeros(shape, bool)
@@ -662,14 +682,18 @@ def shape_from_shading(
     if method == "accurate":
         kwargs = dict(coarse_gn=8, mid_gn=6, fine_gn=6, fine_cg=20, tol=0.01)
     if not periodic:
-        kwargs.update(data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES)
+        kwargs.update(
+            data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES
+        )
     z, albedo = solve_variational(
         dom_img, dom_w.astype(np.float32), light.vector, albedo, z0=z0, **kwargs
     )
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
     if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
-        warnings.append("the solver ran away (non-finite or slopes > 50); fell back to a flat height")
+        warnings.append(
+            "the solver ran away (non-finite or slopes > 50); fell back to a flat height"
+        )
         z = np.zeros_like(z)
         used_method = f"{used_method}+flat-fallback"
     height = (z - z.mean()) * pixel_size_um
@@ -688,26 +712,31 @@ def scale_relief(height, relief_um: float, kind: str = "rms") -> np.ndarray:
     height : ndarray
         Relative heights (any unit; only the shape counts).
     relief_um : float
-        The relief in µm: the RMS height about the mean (``kind="rms"``, the default, which is
-        what Kawabata's SMD measures along a line, roughly) or the peak-to-valley height
-        (``kind="pv"``).
+        The relief in µm, as `kind` says.
     kind : str
-        ``"rms"`` or ``"pv"``.
+        ``"rms"`` (default): RMS height about the mean; ``"pv"``: peak-to-valley height;
+        ``"mad"``: mean absolute deviation about the mean, which is how Kawabata's SMD is
+        defined (along a line; for Gaussian heights RMS = 1.25 x MAD).
 
     Returns
     -------
     ndarray
         Height in µm, mean 0, with the requested relief. A flat input stays flat (zeros).
     """
-    if kind not in ("rms", "pv"):
-        raise ValueError(f"relief kind must be 'rms' or 'pv', got {kind!r}")
+    if kind not in ("rms", "pv", "mad"):
+        raise ValueError(f"relief kind must be 'rms', 'pv' or 'mad', got {kind!r}")
     if not np.isfinite(relief_um) or relief_um < 0:
         raise ValueError(f"relief_um must be finite and >= 0, got {relief_um!r}")
     h = np.asarray(height, dtype=float)
     if not np.all(np.isfinite(h)):
         raise ValueError("height contains NaN or infinite values")
     h = h - h.mean()
-    size = float(np.sqrt(np.mean(h * h))) if kind == "rms" else float(h.max() - h.min())
+    if kind == "rms":
+        size = float(np.sqrt(np.mean(h * h)))
+    elif kind == "pv":
+        size = float(h.max() - h.min())
+    else:
+        size = float(np.mean(np.abs(h)))
     if size <= 0:
         return np.zeros_like(h)
     return h * (relief_um / size)

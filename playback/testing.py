@@ -89,6 +89,10 @@ def write_test_asset(
         s.create_dataset("height", data=np.zeros(height_shape, np.float32))
         s.attrs["pixel_size_um"] = 20.0
         s.attrs["periodic"] = periodic
+        if periodic:  # the height array is one period
+            s.attrs["period_t1_px"] = np.array([height_shape[1], 0.0])
+            s.attrs["period_t2_px"] = np.array([0.0, height_shape[0]])
+            s.attrs["cell_origin_px"] = np.zeros(2)
         p = f.create_group("perception")
         fr = np.array([10.0, 40.0, 320.0, 500.0])
         p.create_dataset("frequency_hz", data=fr)

@@ -252,8 +252,9 @@ def test_record_png_and_layout(record_path, tmp_path):
         n, c = f["frames/a40"].shape
         a320 = f["frames/a320"][()]
     ax = _by_title(fig, "a320 per contactor")
-    lines = ax.get_lines()
+    lines = [ln for ln in ax.get_lines() if ln.get_label().startswith("_c")]
     assert len(lines) == c
+    np.testing.assert_allclose(_line(ax, "mean over contactors").get_ydata(), a320.mean(axis=1), rtol=1e-6)
     np.testing.assert_allclose(np.column_stack([ln.get_ydata() for ln in lines]), a320)
 
 

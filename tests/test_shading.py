@@ -325,6 +325,11 @@ def test_scale_relief_rms_and_peak_to_valley(bumps128):
     assert pv.max() - pv.min() == pytest.approx(80.0, rel=1e-12)
     # Shape is kept exactly.
     assert normalised_height_error(pv, bumps128) < 1e-12
+    # Kawabata's SMD is a mean absolute deviation: a ±1 square wave has MAD = RMS = 1.
+    square = np.where((np.arange(64) // 8) % 2 == 0, 1.0, -1.0)[None, :] * np.ones((4, 1))
+    np.testing.assert_allclose(scale_relief(square, 3.0, "mad"), 3.0 * square, rtol=1e-12)
+    gauss = scale_relief(np.random.default_rng(2).normal(size=200_000), 1.0, "mad")
+    assert np.sqrt(np.mean(gauss**2)) == pytest.approx(np.sqrt(np.pi / 2), rel=0.01)
     assert np.all(scale_relief(np.ones((4, 4)), 10.0) == 0.0)
     with pytest.raises(ValueError):
         scale_relief(bumps128, 10.0, kind="ra")

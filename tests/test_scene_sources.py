@@ -1,0 +1,125 @@
+"""Scenes, input specs and the asset writer/reader round trip."""
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from haptex_compile.errors import InputError
+from haptex_compile.io_scene import parse_scene
+from haptex_compile.scene import default_scene, grid_contactors
+from haptex_compile.sources import input_kind, output_stem, parse_brownian_spec, remove_plane
+from haptex_compile.units import parse_length_um
+
+
+def test_default_scene_is_the_haptex_array():
+    s = default_scene()
+    assert s.contactors_mm.shape == (24, 2)
+    # 6 x 4 at 2 mm pitch, centred: x spans 10 mm, y spans 6 mm, mean at the origin.
+    assert np.ptp(s.contactors_mm[:, 0]) == pytest.approx(10.0)
+    assert np.ptp(s.contactors_mm[:, 1]) == pytest.approx(6.0)
+    np.testing.assert_allclose(s.contactors_mm.mean(axis=0), 0.0, atol=1e-12)
+    r = s.resolved()
+    assert r["motion"]["speed_range_mm_s"] == [10.0, 200.0] and r["motion"]["tolerance"] == 0.02
+    assert r["render"]["frame_ms"] == 25.0 and r["render"]["base_frequencies_hz"] == [40.0, 320.0]
+    json.loads(s.resolved_json())
+
+
+def test_scene_sections_are_optional_and_lists_are_used_as_given():
+    s = parse_scene("[motion]\nspeeds_mm_s = [80, 10, 20]\ndirections_deg = [0, 180, 270, 45]\n", "s.toml")
+    assert s.speeds_mm_s == (10.0, 20.0, 80.0)
+    assert s.directions_deg == (0.0, 45.0, 90.0)  # mod 180, unique
+    assert s.contactors_mm.shape == (24, 2)
+    s = parse_scene("[array]\ncontactors_mm = [[0.0, 0.0], [2.0, 0.0]]\n", "s.toml")
+    np.testing.assert_allclose(s.contactors_mm, [[0, 0], [2, 0]])
+
+
+@pytest.mark.parametrize("text", [
+    "[array]\ngrid = { rows = 0, cols = 6, pitch_mm = 2.0 }",
+    "[array]\ncontactors_mm = [[0.0, 0.0]]\ngrid = { rows = 1, cols = 1, pitch_mm = 1.0 }",
+    "[motion]\nspeeds_mm_s = [10]\nspeed_range_mm_s = [10, 20]",
+    "[motion]\ntolerance = 0",
+    "[render]\nframe_ms = 1000",
+    "[render]\nbase_frequencies_hz = [320, 40]",
+    "[render]\nsummation_exponent = nan",
+    "[physics]\nx = 1",
+])
+def test_bad_scenes_are_input_errors(text):
+    with pytest.raises(InputError) as info:
+        parse_scene(text, "bad.toml")
+    assert str(info.value).startswith("bad.toml: ") and "\n" not in str(info.value)
+
+
+def test_grid_contactors_order_and_pitch():
+    c = grid_contactors(2, 3, 1.5)
+    np.testing.assert_allclose(c[:3, 1], -0.75)
+    np.testing.assert_allclose(np.diff(c[:3, 0]), 1.5)
+
+
+def test_length_units():
+    assert parse_length_um("10um") == 10.0
+    assert parse_length_um("0.01mm") == pytest.approx(10.0)
+    assert parse_length_um("2.5 µm") == 2.5
+    for bad in ("10 furlongs", "-1um", "nan", "0mm", "um"):
+        with pytest.raises(ValueError):
+            parse_length_um(bad)
+
+
+def test_brownian_spec():
+    kw = parse_brownian_spec("brownian:H=0.7,size=1024,pixel=10um,rms=5um,seed=3")
+    assert kw["hurst"] == 0.7 and kw["shape"] == (1024, 1024) and kw["pixel_size_um"] == 10.0
+    assert kw["rms_um"] == 5.0 and kw["seed"] == 3 and kw["periodic"] is False
+    assert parse_brownian_spec("brownian:H=0.5,size=64x32")["shape"] == (32, 64)
+    for bad in ("brownian:size=64", "brownian:H=0.5,colour=red", "brownian:H=0.5,size=4", "brownian:H=x",
+                "brownian:H=0.5,periodic=maybe"):
+        with pytest.raises(InputError):
+            parse_brownian_spec(bad)
+
+
+def test_input_kinds_and_stems():
+    assert input_kind("a/b.kes.json") == "kes" and output_stem("a/b.kes.json") == "b"
+    assert input_kind("x.PNG") == "image" and input_kind("h.exr") == "heightmap"
+    assert input_kind("brownian:H=0.5") == "brownian"
+    assert "/" not in output_stem("brownian:H=0.5,size=64")
+    with pytest.raises(InputError):
+        input_kind("notes.txt")
+
+
+def test_plane_removal_leaves_texture():
+    y, x = np.mgrid[0:40, 0:50]
+    texture = np.sin(x / 3.0) * np.cos(y / 4.0)
+    flat = remove_plane(texture + 3.0 + 0.2 * x - 0.1 * y)
+    # The plane is gone: what is left is the texture minus its own (small) best plane.
+    assert np.abs(flat - remove_plane(texture)).max() < 1e-9
+
+
+def test_asset_round_trip_periodic(tmp_path):
+    from haptex_compile.asset_writer import AssetContent, write_asset
+    from haptex_compile.colours import TwoColourModel
+    from haptex_compile.frame_analysis import AnalysisSettings
+    from haptex_compile.render import asset_model
+    from haptex_compile.surface import periodic_surface_from_tile
+    from haptex_compile.tables import build_tables, table_grid
+    from playback.asset import read_asset
+
+    rng = np.random.default_rng(0)
+    h = rng.normal(size=(40, 50))
+    surface = periodic_surface_from_tile(h, 20.0)
+    model, settings = TwoColourModel(), AnalysisSettings()
+    tables = build_tables(surface, model, settings, [0.0, 90.0], [40.0, 80.0], table_grid(surface, 0.25))
+    path = tmp_path / "a.tact.h5"
+    write_asset(path, AssetContent(surface, tables, model, settings, default_scene(), "tile", "heightmap",
+                                   report={"note": "test"}))
+    a = read_asset(path, load_surface=True)
+    assert a.surface_periodic and a.tables.periodic
+    np.testing.assert_allclose(a.height_um, h.astype(np.float32))
+    np.testing.assert_allclose(a.tables.a40, tables.a40.astype(np.float32))
+    s2, m2, st2 = asset_model(a)
+    f = np.geomspace(5, 900, 50)
+    np.testing.assert_allclose(m2.weights(f), model.weights(f), rtol=1e-12)
+    assert st2 == settings
+    np.testing.assert_allclose(s2.t1_px, [50, 0]) and np.testing.assert_allclose(s2.t2_px, [0, 40])
+    with h5py.File(path) as f5:
+        assert json.loads(f5["report"].attrs["json"]) == {"note": "test"}
