@@ -61,6 +61,8 @@ def _exception_line(exc: BaseException) -> str:
 def worker(path: Path, quick: bool, result_json: Path) -> int:
     """Child process: import one module, call run(quick) and its plot data; write JSON."""
     out: dict[str, Any] = {"markdown": None, "plot_data": None, "error": None, "plot_error": None, "run_s": None}
+    if str(path.parent) not in sys.path:  # sibling imports of plain-script modules
+        sys.path.insert(0, str(path.parent))
     try:
         spec = importlib.util.spec_from_file_location(path.stem, path)
         module = importlib.util.module_from_spec(spec)
@@ -185,17 +187,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", help="comma-separated section names (e.g. lattice,fractal)")
     parser.add_argument("--timeout", type=float, help="seconds per module (default 240 quick, 600 full)")
     parser.add_argument("--out", type=Path, default=BENCH_DIR / "REPORT.md", help="report file (default bench/REPORT.md)")
+    parser.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help="folder of the bench_*.py modules (default: bench/)")
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         return worker(args.worker, args.quick, args.result)
 
-    modules = discover()
+    modules = discover(args.bench_dir)
     if args.only:
         wanted = {w.strip() for w in args.only.split(",") if w.strip()}
         modules = [m for m in modules if m.stem[len("bench_"):] in wanted]
-        missing = sorted(w for w in wanted if not (BENCH_DIR / f"bench_{w}.py").exists())
+        missing = sorted(w for w in wanted if not (args.bench_dir / f"bench_{w}.py").exists())
     else:
         present = {m.stem[len("bench_"):] for m in modules}
         missing = [n for n in EXPECTED if n not in present]

@@ -225,7 +225,7 @@ def plots_from_markdown(markdown: str) -> list[dict[str, Any]]:
             values = [r[i].replace("*", "") for r in rows]
             if i in numeric or kinds[i] or not all(values):
                 continue
-            if 1 < len(set(values)) <= max(2, len(values) // 2):
+            if 1 < len(set(values)) <= len(values) // 2:  # a repeated label: method, solver
                 group_col = i
                 if re.search(r"method|solver|mode|renderer|algorithm|model", h.lower()):
                     break

@@ -20,7 +20,7 @@ from haptex_compile.surface import Surface
 from haptex_compile.tables import Tables, build_tables, table_grid
 
 LOG = logging.getLogger("haptex.compile")
-CHECK_SAMPLES_PER_FAMILY = 16
+CHECK_SAMPLES_PER_FAMILY = 20
 MAX_REFINEMENTS = 3
 
 
@@ -183,10 +183,12 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
             progress(f"tables {tables.a40.shape}: rms error {stats['rms_rel_error']:.3%}")
         if stats["rms_rel_error"] <= tol:
             break
-        # Refine the axis whose family shows the largest error (explicit nodes stay as given).
+        # Refine every axis whose family error exceeds the tolerance (the worst one if none
+        # does on its own); explicit nodes stay as given.
         order = sorted(("direction", "speed", "position"), key=lambda k: -stats[f"rms_rel_error_{k}"])
+        wanted = [k for k in order if stats[f"rms_rel_error_{k}"] > tol] or order[:1]
         refined = False
-        for axis in order:
+        for axis in wanted:
             if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72:
                 lo, hi = scene.direction_range_deg
                 step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, plan.directions_deg.size) / 2
@@ -200,8 +202,6 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
             elif axis == "position" and not plan.explicit_spacing and plan.spacing_mm > 2 * surface.pixel_size_mm:
                 plan.spacing_mm = plan.spacing_mm / 2
                 refined = True
-            if refined:
-                break
         if not refined:
             break
     stats["tolerance"] = tol

@@ -49,7 +49,7 @@ class AnalysisSettings:
 
     frame_ms: float = 25.0
     footprint_sigma_mm: float = DEFAULT_FOOTPRINT_SIGMA_MM
-    margin_ms: float = 150.0
+    margin_ms: float = 300.0
 
     def __post_init__(self) -> None:
         if not (1.0 <= self.frame_ms <= 1000.0):

@@ -52,6 +52,53 @@ def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_si
     return scale_relief(h, DEFAULT_RELIEF_RMS_UM, kind="rms")
 
 
+ROUGHNESS_CELL_MM = 4.0  # the roughness repeats on a super-cell about this large (or what fits)
+
+
+def periodic_roughness(shape: tuple[int, int], t1: np.ndarray, t2: np.ndarray, hurst: float, rms_um: float,
+                       pixel_size_um: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Brownian roughness over an image that repeats on a super-cell (m1 t1, m2 t2) of the lattice.
+
+    The field is synthesised periodic on a torus in the super-cell's own coordinates and mapped
+    onto the image affinely (so an oblique lattice shears it slightly). The super-cell is about
+    ``ROUGHNESS_CELL_MM`` on a side, as large as still fits well inside the image.
+
+    Returns
+    -------
+    roughness_um, T1_px, T2_px
+        The roughness on the image grid and the super-cell vectors (the surface's new period).
+    """
+    from haptex_compile.fractal import brownian_surface
+
+    ny, nx = shape
+    want_px = ROUGHNESS_CELL_MM * 1000.0 / pixel_size_um
+    m1 = max(1, int(round(want_px / np.linalg.norm(t1))))
+    m2 = max(1, int(round(want_px / np.linalg.norm(t2))))
+    while m1 + m2 > 2:  # shrink until the super-cell's bounding box fits in 70 % of the image
+        box = np.abs(m1 * t1) + np.abs(m2 * t2)
+        if box[0] <= 0.7 * nx and box[1] <= 0.7 * ny:
+            break
+        if m1 * np.linalg.norm(t1) >= m2 * np.linalg.norm(t2):
+            m1 = max(1, m1 - 1)
+        else:
+            m2 = max(1, m2 - 1)
+    big1, big2 = m1 * t1, m2 * t2
+    n1 = max(8, int(np.ceil(np.linalg.norm(big1))))
+    n2 = max(8, int(np.ceil(np.linalg.norm(big2))))
+    field = brownian_surface((n2, n1), hurst, pixel_size_um=pixel_size_um, rms_um=rms_um, seed=seed, periodic=True)
+    inv = np.linalg.inv(np.column_stack([big1, big2]))
+    y, x = np.mgrid[0:ny, 0:nx].astype(float)
+    a = (inv[0, 0] * x + inv[0, 1] * y) * n1
+    b = (inv[1, 0] * x + inv[1, 1] * y) * n2
+    a0, b0 = np.floor(a), np.floor(b)
+    fa, fb = a - a0, b - b0
+    i0, j0 = np.mod(a0.astype(np.int64), n1), np.mod(b0.astype(np.int64), n2)
+    i1, j1 = np.mod(i0 + 1, n1), np.mod(j0 + 1, n2)
+    rough = ((field[j0, i0] * (1 - fa) + field[j0, i1] * fa) * (1 - fb)
+             + (field[j1, i0] * (1 - fa) + field[j1, i1] * fa) * fb)
+    return rough, big1, big2
+
+
 def photo_source(spec: str, options: SourceOptions) -> SourceResult:
     """Compile-side pipeline for a photograph file."""
     from haptex_compile.io_images import read_image
@@ -100,16 +147,22 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     height_rel = average_tile(sfs.height, lattice).synthetic
     height = relief_scale(options, spec, height_rel, pixel_size_um, report)
     t1, t2 = np.asarray(lattice.t1_px, float), np.asarray(lattice.t2_px, float)
-    # Reference cell near the image centre, so every sample it needs is inside the image.
-    centre = np.array([nx, ny], dtype=float) / 2.0 - (t1 + t2) / 2.0
-    surface = Surface(height, pixel_size_um, True, t1, t2, np.floor(centre))
     roughness = None
     if options.roughness != "none":
         est, rms_img = roughness_from_residual(flat - tile.synthetic, pixel_size_um=pixel_size_um)
         pattern_rms = float(np.std(tile.synthetic)) or 1.0
-        roughness = {"hurst": float(est.hurst), "dimension": float(est.dimension),
-                     "rms_relative_to_pattern": float(rms_img / pattern_rms),
-                     "note": "estimated from the photo's residual; recorded, not added to the periodic surface"}
+        # Same grey-to-height ratio as the pattern (shading is linear in slope to first order).
+        rms_um = float(np.std(height)) * float(rms_img) / pattern_rms
+        hurst = float(np.clip(est.hurst, 0.02, 0.98))
+        rough, t1, t2 = periodic_roughness(height.shape, t1, t2, hurst, rms_um, pixel_size_um, options.seed)
+        height = height + rough
+        roughness = {"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms_um,
+                     "hurst_ci": [float(est.ci_low), float(est.ci_high)],
+                     "note": "Brownian roughness from the photo's residual, periodic on a super-cell of the lattice"}
         report["roughness"] = roughness
-    lat = {"t1_px": t1, "t2_px": t2, "confidence": float(lattice.confidence)}
+    # Reference cell near the image centre, so every sample it needs is inside the image.
+    centre = np.array([nx, ny], dtype=float) / 2.0 - (t1 + t2) / 2.0
+    surface = Surface(height, pixel_size_um, True, t1, t2, np.floor(centre))
+    lat = {"t1_px": np.asarray(lattice.t1_px, float), "t2_px": np.asarray(lattice.t2_px, float),
+           "confidence": float(lattice.confidence)}
     return SourceResult(surface, "photo", spec, report, lattice=lat, roughness=roughness, source_image=grey)

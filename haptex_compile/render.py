@@ -158,7 +158,7 @@ def asset_model(asset) -> tuple[Surface, TwoColourModel, AnalysisSettings]:
     model = TwoColourModel(curves, band, (float(base[0]), float(base[1])), float(p.get("summation_exponent", 1.23)))
     settings = AnalysisSettings(frame_ms=float(p.get("frame_ms", asset.tables.frame_ms)),
                                 footprint_sigma_mm=float(p.get("footprint_sigma_mm", 0.25)),
-                                margin_ms=float(p.get("margin_ms", 150.0)))
+                                margin_ms=float(p.get("margin_ms", 300.0)))
     height = np.asarray(asset.height_um, dtype=float)
     if asset.surface_periodic:
         geo = asset.surface_geometry

@@ -296,3 +296,64 @@ def test_empty_record_is_a_picture_not_a_crash(tmp_path):
     assert out.read_bytes()[:8] == PNG_SIGNATURE
     fig = plots.record_figure(path)
     assert any("no frames" in t.get_text() for ax in fig.axes for t in ax.texts)
+
+
+# ----------------------------------------------------------------------------- benchmark report
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _bench_main():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("haptex_bench_main", REPO / "bench" / "__main__.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_markdown_tables_become_speed_error_plots():
+    ru = _bench_main().ru
+    md = "\n".join([
+        "## Synthesis", "", "| H | method | bias | ms/surface | time / baseline |", "| --- | --- | ---: | ---: | --- |",
+        "| 0.3 | midpoint (baseline) | +0.10 | 20.0 | 1.00 |", "| 0.3 | exact | -0.002 | 90.0 | 4.5 |",
+        "| 0.7 | midpoint (baseline) | -0.15 | 25.0 | 1.00 |", "| 0.7 | exact | **-0.004** | 110.0 | 4.4 |", "",
+        "| case | baseline err % | exact err % | baseline time (s) | exact time (s) |", "| --- | --- | --- | --- | --- |",
+        "| a | 14 % | 0.1 % | 0.2 | 0.3 |", "| b | 30 % | 0.2 % | 0.25 | 0.5 |", "",
+        "| step | time s | ratio |", "| --- | --- | --- |", "| decode | 0.1 | 1 |", "| fft | 0.2 | 2 |",
+    ])
+    specs = ru.plots_from_markdown(md)
+    assert len(specs) == 2  # the third table has no error column
+    first = {s["label"]: s for s in specs[0]["series"]}
+    assert set(first) == {"midpoint (baseline)", "exact"} and first["midpoint (baseline)"]["baseline"]
+    assert first["exact"]["x"] == [90.0, 110.0] and first["exact"]["y"] == [0.002, 0.004]  # |bias|, bold stripped
+    assert specs[0]["x_label"] == "ms/surface"
+    second = {s["label"]: (s["x"], s["y"]) for s in specs[1]["series"]}
+    assert second == {"baseline err %": ([0.2, 0.25], [14.0, 30.0]), "exact err %": ([0.3, 0.5], [0.1, 0.2])}
+    assert specs[1]["x_label"] == "time (s)" and specs[1]["y_label"] == "err %"
+    assert ru.demote_headings("# A\n```\n# code\n```\n### B", 3) == "### A\n```\n# code\n```\n##### B"
+
+
+def test_bench_runner_reports_successes_failures_and_timeouts(tmp_path):
+    bench = tmp_path / "b"
+    bench.mkdir()
+    (bench / "helper_values.py").write_text("VALUES = [3.0, 1.0]\n")
+    (bench / "bench_good.py").write_text(
+        '"""Good bench (issue 0)."""\nfrom helper_values import VALUES\nPLOT_DATA = []\n'
+        "def run(quick=False):\n"
+        "    PLOT_DATA.append({'title': 't', 'x_label': 'time (ms)', 'y_label': 'error (%)',\n"
+        "                      'series': [{'label': 'baseline', 'x': [1, 2], 'y': VALUES, 'baseline': True}]})\n"
+        "    return '## Good\\n\\n| a | b |\\n| --- | --- |\\n| 1 | 2 |\\n\\nbaseline in the same run, quick=' + str(quick)\n")
+    (bench / "bench_bad.py").write_text('"""Bad bench."""\ndef run(quick=False):\n    raise RuntimeError("no data\\nsecond line")\n')
+    (bench / "bench_slow.py").write_text('"""Slow bench."""\nimport time\ndef run(quick=False):\n    time.sleep(30)\n    return "late"\n')
+    out = tmp_path / "rep" / "REPORT.md"
+    assert _bench_main().main(["--quick", "--bench-dir", str(bench), "--out", str(out), "--timeout", "8"]) == 0
+    text = out.read_text()
+    assert "# haptex benchmark report" in text and "load average" in text and "numpy" in text
+    assert "### Good" in text and "quick=True" in text  # headings demoted under the section
+    assert "`RuntimeError: no data second line (at bench_bad.py:3)`" in text
+    assert "timed out after 8 s" in text
+    for name in ("perception", "tables", "lattice"):
+        assert f"`bench/bench_{name}.py`" in text  # expected sections reported missing
+    assert "![t](plots/bench_good_1.png)" in text
+    assert (out.parent / "plots" / "bench_good_1.png").read_bytes()[:8] == PNG_SIGNATURE
