@@ -178,8 +178,8 @@ def run(quick: bool = False) -> str:
                 f" {le.tilt_deg:.0f}±{le.tilt_sd_deg:.0f} |"
             )
         if mean_amplitudes is not None:
-            t40, t320 = mean_amplitudes(c["height_true_um"], c["pixel_size_um"])
-            r40, r320 = mean_amplitudes(res["default"]["height_um"], c["pixel_size_um"])
+            t40, t320 = mean_amplitudes(c["height_true_um"], c["pixel_size_um"], periodic=True)
+            r40, r320 = mean_amplitudes(res["default"]["height_um"], c["pixel_size_um"], periodic=True)
             line += f" {abs(r40 / t40 - 1):.0%} / {abs(r320 / t320 - 1):.0%} |"
         lines.append(line)
     # Summary against the targets (slants 15-60°, light given / estimated).

@@ -243,3 +243,21 @@ def build_tables(
     inp = np.sqrt(powers[:, :, 1]).reshape(shape)
     dec = model.decompose(ip, inp)
     return Tables(dec.a40, dec.a320, ip, inp, dec.out_of_gamut, directions, speeds, grid)
+
+
+def mean_amplitudes(height_um: np.ndarray, pixel_size_um: float, *, periodic: bool = False,
+                    directions_deg=(0.0, 45.0, 90.0, 135.0), speeds_mm_s=(20.0, 80.0, 160.0),
+                    footprint_sigma_mm: float = 0.25) -> tuple[float, float]:
+    """Mean table amplitudes (a40, a320) in µm of a height map, over a few directions and speeds.
+
+    A compact tactile summary for comparing two height maps of the same thing (e.g. recovered
+    and true heights in the shading benchmark): what users feel is the tables.
+    """
+    from haptex_compile.surface import periodic_surface_from_tile
+
+    h = np.asarray(height_um, dtype=float)
+    surface = periodic_surface_from_tile(h, pixel_size_um) if periodic else Surface(h, pixel_size_um, False)
+    settings = AnalysisSettings(footprint_sigma_mm=footprint_sigma_mm)
+    tables = build_tables(surface, TwoColourModel(), settings, np.asarray(directions_deg), np.asarray(speeds_mm_s),
+                          table_grid(surface, max(0.25, surface.pixel_size_mm)))
+    return float(tables.a40.mean()), float(tables.a320.mean())
