@@ -153,24 +153,10 @@ def weave_image(shape: tuple[int, int], t1_px, t2_px, *, kind: str = "plain",
 
 
 def brownian_surface(shape: tuple[int, int], hurst: float, *, seed: int = 0) -> np.ndarray:
-    """Random Brownian-like surface by power-law filtering of white noise (not periodic).
+    """Non-periodic Brownian surface (exact synthesis of :mod:`haptex_compile.fractal`) scaled to [0, 1]."""
+    from haptex_compile.fractal import brownian_surface as exact_brownian
 
-    The amplitude spectrum falls as |k|^-(1 + H); the field is generated on a twice larger grid
-    and cropped, so it does not wrap around (no spurious periodicity at the image size).
-    Returns values scaled to [0, 1].
-    """
-    if not 0.0 < hurst < 1.0:
-        raise ValueError(f"hurst must be in (0, 1), got {hurst}")
-    rng = np.random.default_rng(seed)
-    big = (2 * shape[0], 2 * shape[1])
-    ky = np.fft.fftfreq(big[0])[:, None]
-    kx = np.fft.rfftfreq(big[1])[None, :]
-    k = np.hypot(kx, ky)
-    k[0, 0] = 1.0
-    amp = k ** -(1.0 + hurst)
-    amp[0, 0] = 0.0
-    spec = np.fft.rfft2(rng.standard_normal(big)) * amp
-    field = np.fft.irfft2(spec, s=big)[: shape[0], : shape[1]]
+    field = exact_brownian(tuple(shape), hurst, pixel_size_um=1.0, rms_um=1.0, seed=seed)
     lo, hi = field.min(), field.max()
     return (field - lo) / (hi - lo)
 
