@@ -1,6 +1,6 @@
 """Heights from shading against ground truth (issue 7).
 
-Lambertian images (albedo 0.8) of the four known surfaces of ``haptex_compile.test_surfaces``
+Lambertian images (albedo 0.8) of the four known surfaces of ``haptex_compile.known_surfaces``
 (a sphere cap, a plain weave, smooth random bumps with RMS slope 0.2 on 20 µm pixels, a
 Brownian surface H = 0.7) under lights of slant 15-60°, plus overhead light (slant 0, where
 Tsai-Shah's df/dZ vanishes) and grazing light (80°). Each image is solved by Tsai & Shah (the
@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from haptex_compile import test_surfaces as ts
+from haptex_compile import known_surfaces as ts
 from haptex_compile.shading import (
     Light,
     normalised_height_error,

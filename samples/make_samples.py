@@ -22,7 +22,7 @@ import numpy as np
 
 def weave_photo(seed: int = 0) -> np.ndarray:
     from haptex_compile.shading import Light, render_lambertian
-    from haptex_compile.test_surfaces import woven_like
+    from haptex_compile.known_surfaces import woven_like
 
     px = 20.0
     height = woven_like((384, 384), px, thread_spacing_um=300.0)

@@ -1,11 +1,11 @@
 """Heights from shading (issue 7): rendering, Tsai-Shah, the default solver, light estimation,
-stability and physical scale. Ground truth comes from haptex_compile.test_surfaces."""
+stability and physical scale. Ground truth comes from haptex_compile.known_surfaces."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from haptex_compile import test_surfaces as ts
+from haptex_compile import known_surfaces as ts
 from haptex_compile.shading import (
     Light,
     SfsResult,
