@@ -12,7 +12,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import sys
+
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root, for tests.asset_factory
 
 from playback import protocol
 from playback.asset import read_asset
@@ -21,9 +25,9 @@ from playback.device import load_profile
 from playback.interp import table_amplitudes
 from playback.player import Player
 from playback.record import Recorder
-from playback.testing import write_test_asset
 from playback.trajectory import MotionState, contactor_kinematics, sweep_trajectory
 from playback.transport import make_transport
+from tests.asset_factory import write_test_asset
 
 FRAME_US = 25000.0
 

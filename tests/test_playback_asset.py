@@ -7,7 +7,7 @@ import pytest
 
 from playback.asset import read_asset
 from playback.errors import AssetError
-from playback.testing import haptex24_layout_mm, smooth_field, write_test_asset
+from asset_factory import haptex24_layout_mm, smooth_field, write_test_asset
 
 
 @pytest.fixture

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from playback.asset import Tables
 from playback.interp import ABOVE_RANGE, BELOW_RANGE, INVALID, OUTSIDE, table_amplitudes
-from playback.testing import make_table_arrays
+from asset_factory import make_table_arrays
 
 
 def tables_from(fn, dirs, speeds, origin=(0.0, 0.0), basis=((1.0, 0.0), (0.0, 1.0)), nj=4, ni=5, periodic=False):

@@ -20,7 +20,7 @@ from playback.device import load_profile
 from playback.errors import DeviceError, InputError
 from playback.player import Player
 from playback.record import Recorder
-from playback.testing import smooth_field, write_test_asset
+from asset_factory import smooth_field, write_test_asset
 from playback.trajectory import LiveSource, read_csv_trajectory, sweep_trajectory
 from playback.transport import make_transport
 

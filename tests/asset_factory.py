@@ -1,18 +1,17 @@
-"""Synthetic assets for tests and benchmarks (until the compiler's writer is used everywhere).
+"""Synthetic assets for the player's tests and benchmark, written by the compiler's one writer.
 
-``write_test_asset`` writes the v1 layout with h5py from tables given as a function
-``f(direction_deg, speed_mm_s, u_mm, v_mm) -> (a40, a320)``; tests then know the exact values.
+``write_test_asset`` fills the tables from a function
+``f(direction_deg, speed_mm_s, u_mm, v_mm) -> (a40, a320)`` so tests know the exact values, and
+writes them with :func:`haptex_compile.asset_writer.write_asset` (the format has one writer).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable
 
 import h5py
 import numpy as np
 
-from playback.asset import FORMAT_NAME
 
 AmplitudeFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -70,8 +69,16 @@ def write_test_asset(
 
     Defaults: directions every 7.5°, 21 speeds 10-320 mm/s, 32 x 32 nodes at 0.25 mm (one 8 mm
     period of :func:`smooth_field`), periodic. For that field the interpolation error stays
-    below 1.5 % (the stated ``max_rel_error`` is 2 %).
+    below 1.5 % (the stated ``max_rel_error`` is 2 %). A `format_version` other than the
+    writer's is patched in afterwards (to test the reader's refusal).
     """
+    from haptex_compile.asset_writer import FORMAT_VERSION, AssetContent, write_asset
+    from haptex_compile.colours import TwoColourModel
+    from haptex_compile.frame_analysis import AnalysisSettings
+    from haptex_compile.scene import Scene
+    from haptex_compile.surface import Surface, periodic_surface_from_tile
+    from haptex_compile.tables import TableGrid, Tables
+
     path = Path(path)
     direction = np.arange(0.0, 180.0, 7.5) if direction_deg is None else np.asarray(direction_deg, float)
     speed = np.geomspace(10.0, 320.0, 21) if speed_mm_s is None else np.asarray(speed_mm_s, float)
@@ -79,43 +86,17 @@ def write_test_asset(
     origin = np.asarray(origin_mm, dtype=np.float64)
     a40, a320 = make_table_arrays(fn, direction, speed, origin, basis, n_j, n_i)
     contactors = haptex24_layout_mm() if contactors_mm is None else np.asarray(contactors_mm, float)
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = FORMAT_NAME
-        f.attrs["format_version"] = format_version
-        f.attrs["generator"] = "playback.testing"
-        f.attrs["source_name"] = "synthetic"
-        f.attrs["source_kind"] = "synthetic"
-        s = f.create_group("surface")
-        s.create_dataset("height", data=np.zeros(height_shape, np.float32))
-        s.attrs["pixel_size_um"] = 20.0
-        s.attrs["periodic"] = periodic
-        if periodic:  # the height array is one period
-            s.attrs["period_t1_px"] = np.array([height_shape[1], 0.0])
-            s.attrs["period_t2_px"] = np.array([0.0, height_shape[0]])
-            s.attrs["cell_origin_px"] = np.zeros(2)
-        p = f.create_group("perception")
-        fr = np.array([10.0, 40.0, 320.0, 500.0])
-        p.create_dataset("frequency_hz", data=fr)
-        p.create_dataset("threshold_p_um", data=np.array([30.0, 5.0, 0.12, 0.2]))
-        p.create_dataset("threshold_np_um", data=np.array([2.5, 2.5, 20.0, 30.0]))
-        p.attrs["base_frequencies_hz"] = np.array([40.0, 320.0])
-        p.attrs["summation_exponent"] = 1.23
-        p.attrs["footprint_mm"] = 0.25
-        t = f.create_group("tables")
-        t.create_dataset("a40", data=a40)
-        t.create_dataset("a320", data=a320)
-        t.create_dataset("direction_deg", data=direction)
-        t.create_dataset("speed_mm_s", data=speed)
-        t.attrs["frame_ms"] = frame_ms
-        t.attrs["periodic"] = periodic
-        t.attrs["origin_mm"] = origin
-        t.attrs["grid_basis_mm"] = basis
-        t.attrs["grid_spacing_mm"] = float(np.linalg.norm(basis[0]))
-        t.attrs["max_rel_error"] = max_rel_error
-        t.attrs["rms_rel_error"] = max_rel_error / 3
-        t.attrs["tolerance"] = 0.05
-        sc = f.create_group("scene")
-        sc.attrs["text"] = ""
-        sc.attrs["resolved"] = json.dumps({"contactors": "haptex24"})
-        sc.create_dataset("contactors_mm", data=contactors)
+    height = np.zeros(height_shape)
+    surface = periodic_surface_from_tile(height, 20.0) if periodic else Surface(height, 20.0, False)
+    zeros = np.zeros_like(a40)
+    tables = Tables(a40, a320, zeros, zeros, zeros, direction, speed, TableGrid(origin, basis, (n_j, n_i), periodic))
+    content = AssetContent(surface=surface, tables=tables, model=TwoColourModel(),
+                           settings=AnalysisSettings(frame_ms=frame_ms), scene=Scene(contactors_mm=contactors),
+                           source_name="synthetic", source_kind="heightmap",
+                           table_errors={"max_rel_error": max_rel_error, "rms_rel_error": max_rel_error / 3,
+                                         "tolerance": 0.05})
+    write_asset(path, content)
+    if format_version != FORMAT_VERSION:
+        with h5py.File(path, "r+") as f:
+            f.attrs["format_version"] = format_version
     return path
