@@ -16,7 +16,7 @@ For a contactor moving along a path p(t) over the surface, with frame centre t_c
    :meth:`~haptex_compile.colours.TwoColourModel.decompose` turns (I_p, I_np) into (a40, a320).
 
 The reference renderer evaluates this on finite stretches (``margin_ms`` beyond the window on
-each side, mean removed, flat for half the margin and tapered in the outer half); the tables evaluate the same filter
+each side, mean and linear trend removed, flat for half the margin and tapered in the outer half); the tables evaluate the same filter
 along whole lines. Both sample heights through :func:`haptex_compile.surface.sample_height`.
 """
 from __future__ import annotations
@@ -174,14 +174,15 @@ def stretch_channel_power(
     right = j > hi
     taper[left] = 0.5 * (1 - np.cos(np.pi * (j[left] + 0.5) / (lo + 0.5)))
     taper[right] = 0.5 * (1 - np.cos(np.pi * (n_out - 0.5 - j[right]) / (n_out - 0.5 - hi)))
-    # Remove the mean (a smooth cos^4-weighted one). A linear trend is left alone on purpose:
-    # the weighting ignores it where the taper is flat, while subtracting a fitted trend would
-    # change the tapered margins, which the analytic signal's long Hilbert tail carries into
-    # the window.
+    # Remove the mean and linear trend (fitted with smooth cos^4 weights, so in-band tones project
+    # almost nothing onto them): slow trends carry no vibration, and a trend left in would be
+    # tapered in the margins, which the analytic signal would carry into the window.
     t = np.arange(n_fine) - (n_fine - 1) / 2.0
     fit_w = np.cos(np.pi * t / n_fine) ** 4
     mean_h = (h * fit_w).sum(axis=-1, keepdims=True) / fit_w.sum()
-    x = (h - mean_h) * taper
+    tc = t - (t * fit_w).sum() / fit_w.sum()
+    slope = (h * fit_w * tc).sum(axis=-1, keepdims=True) / (fit_w * tc * tc).sum()
+    x = (h - mean_h - slope * tc) * taper
     spec = np.fft.rfft(x, axis=-1)
     freqs = np.fft.rfftfreq(n_fine, d=fine_dt_s)[: n_out // 2]
     spec = spec[..., : n_out // 2]

@@ -258,10 +258,6 @@ def test_constant_offset_carries_no_vibration(texture):
     assert np.allclose(shifted, ref, rtol=1e-6)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "reference renderer: a tilted plane (30/-20 um per mm, far from the edges) gives I_np ~2.8 at 80 mm/s; "
-    "the linear trend is kept and tapered in the stretch margins, and the analytic signal's Hilbert tail "
-    "carries it into the window (see report)"))
 def test_tilted_plane_carries_no_vibration(texture):
     model = TwoColourModel()
     s = AnalysisSettings()
@@ -270,7 +266,9 @@ def test_tilted_plane_carries_no_vibration(texture):
     v, u = np.mgrid[0:400, 0:400] * 0.1  # 40 x 40 mm at 100 µm: the analysis stretch stays inside
     plane = Surface(1000.0 + 30.0 * u - 20.0 * v, 100.0)
     got = np.array(point_intensities(plane, model, s, straight_path(20.0, 20.0, SPEED, 30.0), 0.0))
-    assert np.all(got < 1e-6 * ref)
+    # A plane sloping by hundreds of µm over the stretch: at most 1e-4 of a 5 µm texture's
+    # intensity (rounding of the removed trend), i.e. nothing felt.
+    assert np.all(got < 1e-4 * ref)
 
 
 def test_speed_zero_gives_exactly_zero(texture):
@@ -437,7 +435,7 @@ def test_band_weight_properties():
     f = np.array([0.0, 1.0, 10.0, 100.0, 599.0, 700.0, 800.0, 5000.0])
     b = band.weight(f)
     assert b[0] == 0.0 and b[-1] == 0.0 and b[-2] == 0.0
-    assert b[1] == pytest.approx(1 - np.exp(-0.01), rel=1e-9)  # vanishes like f^2 at 0 Hz
+    assert b[1] == pytest.approx(1 - np.exp(-1e-4), rel=1e-9)  # vanishes like f^4 at 0 Hz
     assert b[2] == pytest.approx(1 - np.exp(-1.0), rel=1e-9)
     assert b[5] == pytest.approx(0.5, rel=1e-9)  # raised cosine half-way from 600 to 800 Hz
     with pytest.raises(ValueError):
