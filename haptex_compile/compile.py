@@ -20,7 +20,7 @@ from haptex_compile.surface import Surface
 from haptex_compile.tables import Tables, build_tables, table_grid
 
 LOG = logging.getLogger("haptex.compile")
-CHECK_SAMPLES_PER_FAMILY = 20
+CHECK_SAMPLES_PER_FAMILY = 16
 MAX_REFINEMENTS = 3
 
 
@@ -114,7 +114,8 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
 
     Three families of samples isolate where the error comes from: directions halfway between
     nodes, speeds halfway (geometric mean) between nodes, and random positions at node
-    directions and speeds; the union gives the stored statistics.
+    directions and speeds; a fourth ("stroke") puts every axis between nodes at once. The union
+    gives the stored statistics.
     """
     rng = np.random.default_rng(seed)
     player = _as_player_tables(tables, settings.frame_ms)
@@ -139,12 +140,13 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         k = rng.integers(speeds.size - 1)
         return float(np.sqrt(speeds[k] * speeds[k + 1]))
 
-    families: dict[str, list[float]] = {"direction": [], "speed": [], "position": []}
+    families: dict[str, list[float]] = {"direction": [], "speed": [], "position": [], "stroke": []}
     for family in families:
         for _ in range(per_family):
             p = random_position()
-            d = mid_direction() if family == "direction" else float(rng.choice(dirs))
-            s = mid_speed() if family == "speed" else float(rng.choice(speeds))
+            # "stroke": every axis between nodes at once, as a random stroke meets them.
+            d = mid_direction() if family in ("direction", "stroke") else float(rng.choice(dirs))
+            s = mid_speed() if family in ("speed", "stroke") else float(rng.choice(speeds))
             ip, inp = point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0)
             ref = model.decompose(ip, inp)
             a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
@@ -232,7 +234,8 @@ def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, se
         LOG.warning("%s: tables reach %.2f%% RMS error, above the tolerance %.2f%% (node limits reached)",
                     source.name, 100 * stats["rms_rel_error"], 100 * scene.tolerance)
     table_errors = {k: stats[k] for k in ("max_rel_error", "rms_rel_error", "p95_rel_error", "n_check_samples",
-                                           "rms_rel_error_direction", "rms_rel_error_speed", "rms_rel_error_position")}
+                                           "rms_rel_error_direction", "rms_rel_error_speed", "rms_rel_error_position",
+                                           "rms_rel_error_stroke")}
     table_errors["tolerance"] = scene.tolerance
     table_errors["error_metric"] = "|a_table - a_reference| / |a_reference|, colours in threshold units (T_np(40), T_p(320))"
     content = AssetContent(surface=source.surface, tables=tables, model=model, settings=settings, scene=scene,

@@ -127,6 +127,18 @@ def across_spacing_mm(sigma_mm: float, pixel_size_mm: float, speed_mm_s: float, 
     return pixel_size_mm * max(1, int(np.floor(want / pixel_size_mm)))
 
 
+def _cached_weights(model: TwoColourModel, n_fine: int, fine_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Channel weights on a stretch's frequency grid, kept on the model (frames repeat grids)."""
+    cache = model.__dict__.setdefault("_stretch_weights", {})
+    key = (n_fine, round(fine_dt_s, 15))
+    if key not in cache:
+        cache[key] = model.weights(np.fft.rfftfreq(n_fine, d=fine_dt_s))
+        if len(cache) > 256:
+            cache.pop(next(iter(cache)))
+    wp, wnp = cache[key]
+    return wp, wnp
+
+
 def stretch_channel_power(
     heights_um: np.ndarray,
     fine_dt_s: float,
@@ -186,7 +198,7 @@ def stretch_channel_power(
     spec = np.fft.rfft(x, axis=-1)
     freqs = np.fft.rfftfreq(n_fine, d=fine_dt_s)[: n_out // 2]
     spec = spec[..., : n_out // 2]
-    wp, wnp = model.weights(freqs)
+    wp, wnp = (w[: n_out // 2] for w in _cached_weights(model, n_fine, fine_dt_s))
     res = resolution_weight(freqs / speed_mm_s, pixel_size_mm)
     wp, wnp = wp * res, wnp * res
     scale = 2.0 / decimation  # analytic signal (x2 for positive bins), n_fine -> n_out inverse FFT

@@ -170,7 +170,7 @@ def test_check_tables_detects_wrong_tables(brownian_tile):
     bad = check_tables(brownian_tile, MODEL, SETTINGS, bad_tab, seed=0, per_family=4)
     # Same samples (same seed): every amplitude 50 % too large, so the error is 0.5 +- the tables' own.
     assert abs(bad["rms_rel_error"] - 0.5) <= good["max_rel_error"] * 1.5 + 1e-3
-    assert bad["n_check_samples"] == good["n_check_samples"] == 12
+    assert bad["n_check_samples"] == good["n_check_samples"] == 16  # 4 families x 4
 
 
 def test_build_checked_tables_meets_the_tolerance_and_stores_stats(brownian_tile):
