@@ -3,7 +3,7 @@
 ``python samples/make_samples.py DIR`` writes into DIR:
 
 * ``weave.png``: a photograph-like image of a plain weave, rendered with Lambertian shading
-  (light slant 40 deg, tilt 30 deg) from a known woven-like height map, with sensor noise and
+  (light slant 40 deg, tilt 330 deg: from the upper right, as photos are usually lit) from a known woven-like height map, with sensor noise and
   a slow illumination gradient; 20 um per pixel;
 * ``twill_height.npy``: a 2/2 twill relief in um (thread crown 30 um), 20 um per pixel;
 * ``gravel.png``: scikit-image's ``data.gravel()`` (a non-periodic photograph);
@@ -26,7 +26,7 @@ def weave_photo(seed: int = 0) -> np.ndarray:
 
     px = 20.0
     height = woven_like((384, 384), px, thread_spacing_um=300.0)
-    image = render_lambertian(height, px, Light(slant_deg=40.0, tilt_deg=30.0), albedo=0.8)
+    image = render_lambertian(height, px, Light(slant_deg=40.0, tilt_deg=330.0), albedo=0.8)
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:384, 0:384] / 384.0
     image = image * (0.85 + 0.15 * x) + rng.normal(0.0, 0.01, image.shape)
