@@ -3,8 +3,8 @@
 ``python samples/make_samples.py DIR`` writes into DIR:
 
 * ``weave.png``: a photograph-like image of a plain weave, rendered with Lambertian shading
-  (light slant 40 deg, tilt 330 deg: from the upper right, as photos are usually lit) from a known woven-like height map, with sensor noise and
-  a slow illumination gradient; 20 um per pixel;
+  from a known woven-like height map (light slant 40 deg, tilt 330 deg: from the upper right,
+  as photos are usually lit), with sensor noise and a slow illumination gradient; 20 um/pixel;
 * ``twill_height.npy``: a 2/2 twill relief in um (thread crown 30 um), 20 um per pixel;
 * ``gravel.png``: scikit-image's ``data.gravel()`` (a non-periodic photograph);
 * ``brick.png``: scikit-image's ``data.brick()`` (near-regular, with perspective).
