@@ -57,12 +57,27 @@ def roughness_measures(hursts, *, size: int = 256, pixel_um: float = 20.0, rms_u
     return rows
 
 
+PLOT_DATA: list[dict] = []  # filled by run(): the paper's Fig. 16 analogue for the report
+
+
 def run(quick: bool = False) -> str:
     hursts = [0.1, 0.3, 0.5, 0.7, 0.9] if quick else [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9]
     t0 = time.perf_counter()
     rows = roughness_measures(hursts, seeds=(0,) if quick else (0, 1, 2))
     dt = time.perf_counter() - t0
     d = np.array([r["dimension"] for r in rows])
+    PLOT_DATA[:] = [{
+        "title": "Felt roughness against fractal dimension (equal RMS, 80 mm/s)",
+        "x_label": "fractal dimension D = 3 - H", "y_label": "measure / its value at the largest D",
+        "series": [
+            {"label": "total channel intensity", "x": d.tolist(),
+             "y": [r["total_intensity"] / rows[0]["total_intensity"] for r in rows]},
+            {"label": "320 Hz share", "x": d.tolist(), "y": [r["share_320"] / rows[0]["share_320"] for r in rows]},
+            {"label": "RMS slope (geometric baseline)", "x": d.tolist(),
+             "y": [r["rms_slope"] / rows[0]["rms_slope"] for r in rows], "baseline": True},
+        ],
+        "log_x": False, "log_y": True,
+    }]
     lines = ["| H | D | total channel intensity (x threshold) | 320 Hz share of felt amplitude | RMS slope (baseline) |",
              "| --- | --- | --- | --- | --- |"]
     for r in rows:
