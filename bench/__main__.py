@@ -142,7 +142,7 @@ def _section(res: dict[str, Any], plots_dir: Path) -> tuple[str, list[str]]:
     if res.get("plot_error"):
         lines += [f"(plot data failed: `{res['plot_error']}`)", ""]
     if specs:
-        lines += ["### Speed against error" + (" (from the tables above)" if parsed else ""), ""]
+        lines += ["### Plots" + (": time against error, from the tables above" if parsed else ""), ""]
     for k, spec in enumerate(specs, 1):
         name = f"{res['module']}_{k}.png"
         try:

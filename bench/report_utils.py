@@ -210,11 +210,10 @@ def plots_from_markdown(markdown: str) -> list[dict[str, Any]]:
         if not times or not errors:
             continue
         if len(times) == 1:
-            # "median time s" goes with every error column; "spectral ms" only with "spectral ...".
+            # "spectral ms" goes only with "spectral bias" when there is one; else with the first errors.
             t = times[0]
             same = [e for e in errors if _first_word(header[e]) == _first_word(header[t])]
-            generic = _first_word(header[t]) in {"time", "ms", "s", "seconds", "median", "mean", "wall", "runtime"}
-            pairs = [(t, e) for e in (errors[:2] if generic else same[:2])]
+            pairs = [(t, e) for e in (same or errors)[:2]]
         else:
             pairs = [(t, e) for t in times for e in errors if _first_word(header[t]) == _first_word(header[e])]
         if not pairs:
@@ -252,8 +251,10 @@ def plots_from_markdown(markdown: str) -> list[dict[str, Any]]:
 
         def common(cols: list[int]) -> str:
             # "baseline time (s)", "calibrated time (s)" -> "time (s)"
+            if len(cols) == 1:
+                return header[cols[0]]
             rest = {header[c].split(" ", 1)[-1] for c in cols}
-            return rest.pop() if len(rest) == 1 and len(cols) > 1 else header[cols[0]]
+            return rest.pop() if len(rest) == 1 else ("error" if _kind(header[cols[0]]) == "error" else "time") + " (see legend)"
 
         xcols = list(dict.fromkeys(p[0] for p in pairs))
         ycols = list(dict.fromkeys(p[1] for p in pairs))

@@ -331,6 +331,12 @@ def test_markdown_tables_become_speed_error_plots():
     second = {s["label"]: (s["x"], s["y"]) for s in specs[1]["series"]}
     assert second == {"baseline err %": ([0.2, 0.25], [14.0, 30.0]), "exact err %": ([0.3, 0.5], [0.1, 0.2])}
     assert specs[1]["x_label"] == "time (s)" and specs[1]["y_label"] == "err %"
+    tol = "| surface | tolerance | compile time | stored RMS error |\n| --- | --- | --- | --- |\n" + "\n".join(
+        f"| {name} | {t} % | {c} s | {e} % |" for name, t, c, e in
+        (("brownian", 5, 4.0, 4.1), ("brownian", 2, 9.0, 1.8), ("twill", 5, 5.0, 3.0), ("twill", 2, 12.0, 1.5)))
+    (spec,) = ru.plots_from_markdown(tol)
+    assert {s["label"]: (s["x"], s["y"]) for s in spec["series"]} == {
+        "brownian": ([4.0, 9.0], [4.1, 1.8]), "twill": ([5.0, 12.0], [3.0, 1.5])}
     assert ru.demote_headings("# A\n```\n# code\n```\n### B", 3) == "### A\n```\n# code\n```\n##### B"
 
 
