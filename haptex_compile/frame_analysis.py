@@ -30,7 +30,8 @@ from haptex_compile.colours import TwoColourModel
 
 ANALYSIS_RATE_HZ = 2048.0  # output rate of the envelope; Nyquist 1024 Hz > band top (800 Hz)
 DEFAULT_FOOTPRINT_SIGMA_MM = 0.25
-FOOTPRINT_TRUNCATION = 3.0  # footprint Gaussians are cut at 3 sigma
+FOOTPRINT_TRUNCATION = 4.0  # footprint Gaussians are cut at 4 sigma (tails of e^-8: a power spike beside the
+# footprint, e.g. at a step, must not change the result the way a 3-sigma cut lets it)
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,7 @@ def frame_window(offset_s: np.ndarray, frame_ms: float, sigma_t_s: float = 0.0) 
     """Frame window at time offsets from the frame centre (unnormalised, peak about 1).
 
     Hann of full width ``2 * frame_ms`` convolved with a Gaussian of ``sigma_t_s`` (the
-    footprint along the motion, in time), truncated at 3 sigma.
+    footprint along the motion, in time), truncated at 4 sigma.
     """
     t, w = _window_table(float(frame_ms), float(sigma_t_s))
     return np.interp(np.asarray(offset_s, dtype=float), t, w, left=0.0, right=0.0)
@@ -91,7 +92,7 @@ def frame_window(offset_s: np.ndarray, frame_ms: float, sigma_t_s: float = 0.0) 
 def footprint_offsets(sigma_mm: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Across-motion offsets (mm) and normalised Gaussian weights of the footprint.
 
-    Offsets are multiples of `spacing_mm` within 3 sigma; sigma 0 gives the single point 0.
+    Offsets are multiples of `spacing_mm` within 4 sigma; sigma 0 gives the single point 0.
     """
     if sigma_mm <= 0:
         return np.zeros(1), np.ones(1)

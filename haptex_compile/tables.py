@@ -33,6 +33,8 @@ from haptex_compile.frame_analysis import (
     frame_window,
     resolution_weight,
 )
+from haptex_compile.line_analysis import direction_powers
+from haptex_compile.line_sampling import LineSampler, supports
 from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
 
 MAX_TABLE_NODES = 4_000_000
@@ -190,6 +192,15 @@ def _direction_powers(
     return np.maximum(out, 0.0)
 
 
+def line_sampler(surface: Surface) -> LineSampler:
+    """The surface's line sampler, kept on the surface so refinement rounds reuse it."""
+    sampler = surface.__dict__.get("_line_sampler")
+    if sampler is None:
+        sampler = LineSampler(surface)
+        object.__setattr__(surface, "_line_sampler", sampler)
+    return sampler
+
+
 def build_tables(
     surface: Surface,
     model: TwoColourModel,
@@ -225,6 +236,9 @@ def build_tables(
         raise ValueError("speeds must be positive, finite and strictly increasing")
     nodes = grid.nodes_mm().reshape(-1, 2)
     cache = {} if cache is None else cache
+    # Fast path (sheared lines, 2-D spectral averaging) where the surface's extension is periodic
+    # on its coefficient array and the footprint is not a point; rotated lines otherwise.
+    sampler = line_sampler(surface) if settings.footprint_sigma_mm > 0 and supports(surface) else None
 
     def key(d: float, s: float) -> tuple[float, float]:
         return (round(float(d), 9), round(float(s), 9))
@@ -232,7 +246,10 @@ def build_tables(
     def one(d: float) -> None:
         missing = np.array([s for s in speeds if key(d, s) not in cache])
         if missing.size:
-            powers = _direction_powers(surface, model, settings, nodes, d, missing)
+            if sampler is not None:
+                powers = direction_powers(sampler, model, settings, nodes, d, missing)
+            else:
+                powers = _direction_powers(surface, model, settings, nodes, d, missing)
             for s, pw in zip(missing, powers):
                 cache[key(d, s)] = pw
 

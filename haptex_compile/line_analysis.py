@@ -1,0 +1,172 @@
+"""Mean channel power at table nodes from sheared lines, for all speeds of one direction.
+
+This is the tables' fast path (:mod:`haptex_compile.tables` falls back to rotated lines for
+surfaces whose lattice is not the array and for the point model). For one direction and speed
+the frame analysis (:mod:`haptex_compile.frame_analysis`) is: filter every line with the channel
+weights ``W_c(speed x k)`` into an analytic signal z, square its envelope, and average ``|z|^2``
+with the frame window along the line and the footprint Gaussian across the lines. Here:
+
+1. lines come from :class:`haptex_compile.line_sampling.LineSampler` (sheared, exact spline
+   values), their ends joined by removing the end-to-end ramp, and are Fourier transformed once
+   per group of speeds that need similar line lengths (the filter must settle within the line,
+   which takes longer at speed);
+2. per speed and channel, ``|z|^2`` is formed from the weighted spectrum on just enough samples
+   that its aliases miss the low frequencies kept in step 3 (``n_keep + K`` instead of
+   ``2 n_keep``);
+3. the averaging kernel is applied in the 2-D Fourier domain of the (line, column) index space,
+   where the physical kernel (window along, Gaussian across) appears sheared; it is smooth on
+   the footprint's scale, so only frequencies where it exceeds ``KERNEL_CUT`` are kept and
+   transformed back onto a small grid (twice oversampled);
+4. the nodes read that grid with cubic B-spline interpolation.
+
+The kernel is the continuous one (Hann of full width 2 x frame convolved with the footprint
+Gaussian along, the footprint Gaussian across), of which the reference renderer's sampled
+weights are a quadrature.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft
+from scipy import ndimage
+
+from haptex_compile.colours import TwoColourModel
+from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, AnalysisSettings, resolution_weight
+from haptex_compile.line_sampling import RESOLVED_FRACTION, LineSampler
+
+KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
+LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
+GROUP_LENGTH_RATIO = 1.3  # speeds share a line transform while their lines differ by less than this
+
+
+def kernel_cut_cyc_per_mm(sigma_mm: float) -> float:
+    """Spatial frequency where the footprint Gaussian's transform falls to ``KERNEL_CUT``."""
+    return float(np.sqrt(np.log(1.0 / KERNEL_CUT) / (2.0 * np.pi**2)) / sigma_mm)
+
+
+def along_kernel_ft(xi_cyc_mm: np.ndarray, speed_mm_s: float, settings: AnalysisSettings) -> np.ndarray:
+    """Transform of the frame window along the motion, in space (unit at 0).
+
+    The window is a Hann of full width 2 x frame in time (transform
+    ``sinc(x) + (sinc(x - 1) + sinc(x + 1)) / 2`` with ``x = 2 T f``) convolved with the
+    footprint Gaussian; at speed s the temporal frequency is ``f = s xi``.
+    """
+    x = 2.0 * settings.frame_ms / 1000.0 * speed_mm_s * np.asarray(xi_cyc_mm)
+    hann = np.sinc(x) + 0.5 * (np.sinc(x - 1.0) + np.sinc(x + 1.0))
+    return hann * across_kernel_ft(xi_cyc_mm, settings.footprint_sigma_mm)
+
+
+def across_kernel_ft(xi_cyc_mm: np.ndarray, sigma_mm: float) -> np.ndarray:
+    """Transform of the footprint Gaussian (unit at 0)."""
+    return np.exp(-2.0 * np.pi**2 * sigma_mm**2 * np.asarray(xi_cyc_mm) ** 2)
+
+
+def line_margin_mm(speed_mm_s: float, settings: AnalysisSettings, pixel_size_mm: float) -> float:
+    """How far lines must reach beyond the nodes: window, filter settling and footprint."""
+    return speed_mm_s * (settings.frame_ms + LINE_SETTLE_MS) / 1000.0 + FOOTPRINT_TRUNCATION * settings.footprint_sigma_mm + 2 * pixel_size_mm
+
+
+def _speed_groups(speeds: np.ndarray, settings: AnalysisSettings, span_mm: float, px: float) -> list[np.ndarray]:
+    """Indices of speeds grouped (fastest first) so lines within a group differ little in length."""
+    order = np.argsort(speeds)[::-1]
+    groups: list[list[int]] = []
+    for i in order:
+        need = span_mm + 2 * line_margin_mm(speeds[i], settings, px)
+        if groups and groups[-1][1] <= GROUP_LENGTH_RATIO * need:
+            groups[-1][0].append(int(i))
+        else:
+            groups.append([[int(i)], need])
+    return [np.array(g[0]) for g in groups]
+
+
+def direction_powers(
+    sampler: LineSampler,
+    model: TwoColourModel,
+    settings: AnalysisSettings,
+    nodes_mm: np.ndarray,
+    direction_deg: float,
+    speeds_mm_s: np.ndarray,
+    workers: int = 1,
+) -> np.ndarray:
+    """Mean channel powers [n_speed, 2, n_nodes] at the nodes for one direction.
+
+    Parameters
+    ----------
+    sampler : LineSampler
+        The surface's line sampler.
+    model, settings
+        Channel weights and analysis parameters; the footprint sigma must be positive.
+    nodes_mm : ndarray [n, 2]
+        Node positions (u, v) in mm.
+    direction_deg : float
+    speeds_mm_s : ndarray
+        Speeds (mm/s), any order.
+    workers : int
+        Threads per FFT.
+    """
+    sigma = settings.footprint_sigma_mm
+    if sigma <= 0:
+        raise ValueError("the sheared-line analysis needs a footprint (sigma > 0)")
+    speeds = np.asarray(speeds_mm_s, dtype=float)
+    px = sampler.surface.pixel_size_mm
+    u, v = nodes_mm[:, 0], nodes_mm[:, 1]
+    xi_cut = kernel_cut_cyc_per_mm(sigma)
+    pad = FOOTPRINT_TRUNCATION * sigma + 2.0 / xi_cut + 2 * px  # footprint support plus the cropped kernel's ringing
+    frame, n_rows, n_cols = sampler.frame(direction_deg, u, v, line_margin_mm(speeds.max(), settings, px), pad)
+    lines = sampler.sample(frame, n_rows, n_cols)
+    jf, kf = frame.index_coords(u, v)
+    da = frame.along_mm
+    k_nyq_map = 0.5 / px
+    centre = 0.5 * (kf.min() + kf.max())
+    span = (kf.max() - kf.min()) * da
+    out = np.empty((speeds.size, 2, nodes_mm.shape[0]))
+    for group in _speed_groups(speeds, settings, span, px):
+        need = span + 2 * line_margin_mm(speeds[group].max(), settings, px)
+        n_g = min(n_cols, scipy.fft.next_fast_len(int(np.ceil(need / da)) + 2, real=True))
+        c_lo = int(np.clip(np.floor(centre - n_g / 2), 0, n_cols - n_g))
+        seg = lines[:, c_lo:c_lo + n_g]
+        # Join each line's ends (a linear trend is invisible to the weighting, which vanishes at
+        # 0 Hz) so the circular transform sees no step.
+        ramp = np.linspace(0.0, 1.0, n_g, dtype=np.float32)
+        seg = seg - seg[:, :1] - (seg[:, -1:] - seg[:, :1]) * ramp
+        spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)
+        length_mm = n_g * da
+        k = scipy.fft.rfftfreq(n_g, d=da)
+        n_res = int(np.searchsorted(k, RESOLVED_FRACTION * k_nyq_map)) + 1
+        res = resolution_weight(k, px)
+        kk = int(np.ceil(xi_cut * length_mm))
+        kj = int(np.ceil(xi_cut * n_rows * px * (abs(frame.sin_d) + frame.cos_d)))
+        kj = min(kj, (n_rows - 1) // 2)
+        mj = np.concatenate([np.arange(kj + 1), np.arange(-kj, 0)])
+        xi_a = np.arange(kk + 1) / length_mm
+        xi_b = (mj[:, None] / n_rows - xi_a[None, :] * px * frame.sin_d) / (px * frame.cos_d)
+        across = across_kernel_ft(xi_b, sigma)
+        gj = scipy.fft.next_fast_len(2 * (2 * kj + 1))
+        gk = scipy.fft.next_fast_len(2 * (2 * kk + 1), real=True)
+        rows_dst = np.concatenate([np.arange(kj + 1), gj - np.arange(kj, 0, -1)])
+        # Dividing by the discrete B-spline's transform makes the inverse transform return the
+        # grid's cubic B-spline coefficients directly (the prefilter, done where it is free).
+        prefilter = 1.0 / (((4.0 + 2.0 * np.cos(2 * np.pi * mj / gj)) / 6.0)[:, None]
+                           * ((4.0 + 2.0 * np.cos(2 * np.pi * np.arange(kk + 1) / gk)) / 6.0)[None, :])
+        base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
+        coords = np.vstack([jf * gj / n_rows, (kf - c_lo) * gk / n_g])
+        for si in group:
+            s = speeds[si]
+            n_keep = min(int(np.searchsorted(s * k, model.band.high_stop_hz)), n_res, k.size)
+            n_out = scipy.fft.next_fast_len(n_keep + kk + 2)
+            kernel = along_kernel_ft(xi_a, s, settings).astype(np.float32)[None, :] * base / np.float32(n_out)
+            wp, wnp = model.weights(s * k[:n_keep])
+            for ci, w in enumerate((wp, wnp)):
+                z = np.zeros((n_rows, n_out), dtype=np.complex64)
+                np.multiply(spectrum[:, :n_keep], (2.0 * w * res[:n_keep] * n_out / n_g).astype(np.float32), out=z[:, :n_keep])
+                z[:, 0] = 0.0
+                z = scipy.fft.ifft(z, axis=1, workers=workers, overwrite_x=True)
+                power = np.square(z.real)
+                power += np.square(z.imag)
+                low = scipy.fft.rfft(power, axis=1, workers=workers)[:, :kk + 1]
+                low = scipy.fft.fft(low, axis=0, workers=workers)[mj]
+                low *= kernel
+                grid = np.zeros((gj, gk // 2 + 1), dtype=np.complex64)
+                grid[rows_dst, :kk + 1] = low
+                coeffs = scipy.fft.irfft2(grid, s=(gj, gk))
+                out[si, ci] = ndimage.map_coordinates(coeffs, coords, order=3, mode="grid-wrap", prefilter=False)
+    return np.maximum(out, 0.0)
