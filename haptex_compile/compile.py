@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -17,10 +18,11 @@ from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import Scene
 from haptex_compile.sources import SourceOptions, SourceResult, load_source
 from haptex_compile.surface import Surface
-from haptex_compile.tables import Tables, build_tables, table_grid
+from haptex_compile.tables import Tables, build_tables, densify_speeds, table_grid
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
+CHECK_WORKERS = 2
 MAX_REFINEMENTS = 3
 
 
@@ -70,15 +72,26 @@ def _speed_nodes(lo: float, hi: float, ratio: float) -> np.ndarray:
     return np.geomspace(lo, hi, n + 1)
 
 
+# Node steps that meet the default 2 % tolerance on a Brownian surface (H = 0.5) with the default
+# footprint (bench/bench_tables.py): interpolation error grows with the square of the step, so
+# other tolerances start from steps scaled by sqrt(tolerance / 2 %).
+PLAN_TOLERANCE = 0.02
+PLAN_DIRECTION_STEP_DEG = 15.0
+PLAN_SPEED_RATIO = 1.24
+
+
 def initial_plan(scene: Scene, surface: Surface) -> NodePlan:
-    """Starting nodes: explicit lists as given, else coarse nodes the error check refines."""
+    """Starting nodes: explicit lists as given, else steps scaled from the 2 % plan (refined later)."""
     sigma = scene.footprint_sigma_mm
     spacing = scene.grid_spacing_mm or (sigma if sigma > 0 else 2 * surface.pixel_size_mm)
     spacing = max(spacing, surface.pixel_size_mm)
+    scale = math.sqrt(scene.tolerance / PLAN_TOLERANCE)
+    step = min(45.0, max(3.75, PLAN_DIRECTION_STEP_DEG * scale))
+    ratio = min(2.0, max(1.04, math.exp(math.log(PLAN_SPEED_RATIO) * scale)))
     directions = (np.asarray(scene.directions_deg) if scene.directions_deg is not None
-                  else _direction_nodes(*scene.direction_range_deg, step=30.0))
+                  else _direction_nodes(*scene.direction_range_deg, step=step))
     speeds = (np.asarray(scene.speeds_mm_s) if scene.speeds_mm_s is not None
-              else _speed_nodes(*scene.speed_range_mm_s, ratio=1.6))
+              else _speed_nodes(*scene.speed_range_mm_s, ratio=ratio))
     return NodePlan(directions, speeds, spacing, scene.directions_deg is not None,
                     scene.speeds_mm_s is not None, scene.grid_spacing_mm is not None)
 
@@ -140,17 +153,26 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         k = rng.integers(speeds.size - 1)
         return float(np.sqrt(speeds[k] * speeds[k + 1]))
 
-    families: dict[str, list[float]] = {"direction": [], "speed": [], "position": [], "stroke": []}
+    families: dict[str, list[tuple[float, float, float, float]]] = {"direction": [], "speed": [], "position": [], "stroke": []}
+    points = []
     for family in families:
         for _ in range(per_family):
             p = random_position()
             # "stroke": every axis between nodes at once, as a random stroke meets them.
             d = mid_direction() if family in ("direction", "stroke") else float(rng.choice(dirs))
             s = mid_speed() if family in ("speed", "stroke") else float(rng.choice(speeds))
-            ip, inp = point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0)
-            ref = model.decompose(ip, inp)
-            a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
-            families[family].append((float(a40[0]), float(a320[0]), float(ref.a40), float(ref.a320)))
+            points.append((family, p, s, d))
+
+    def evaluate(point) -> tuple[float, float, float, float]:
+        _, p, s, d = point
+        ref = model.decompose(*point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0))
+        a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
+        return float(a40[0]), float(a320[0]), float(ref.a40), float(ref.a320)
+
+    # The reference renderer's FFTs release the GIL: two threads use both cores.
+    with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
+        for point, row in zip(points, pool.map(evaluate, points)):
+            families[point[0]].append(row)
     stats: dict[str, Any] = {}
     all_rows = np.array([row for rows in families.values() for row in rows])
     errs = relative_errors(model, all_rows[:, 0], all_rows[:, 1], all_rows[:, 2], all_rows[:, 3])
@@ -166,6 +188,27 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     return stats
 
 
+def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
+    """Which node axes to halve so that the predicted RMS error falls below the tolerance.
+
+    The direction and speed families are also at random positions, so their errors include the
+    position family's; subtracting it in quadrature leaves each axis's own share. Halving a step
+    divides linear-interpolation error by about 4 (by 3 here, to be safe); axes are taken, largest
+    share first, until the shares left add up (in quadrature) to 85 % of the tolerance.
+    """
+    pos = stats["rms_rel_error_position"]
+    share = {"position": pos,
+             "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
+             "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+    chosen: list[str] = []
+    for axis in sorted(share, key=lambda a: -share[a]):
+        if math.sqrt(sum(v * v for v in share.values())) <= 0.85 * tolerance:
+            break
+        chosen.append(axis)
+        share[axis] /= 3.0
+    return chosen or [max(share, key=lambda a: share[a])]
+
+
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
                          seed: int = 0, progress: Callable[[str], None] | None = None) -> tuple[Tables, dict[str, Any], NodePlan]:
     """Build tables, measure their error and refine nodes until the scene's tolerance is met."""
@@ -177,20 +220,25 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
         grid = table_grid(surface, plan.spacing_mm)
         cache = caches.setdefault(round(plan.spacing_mm, 12), {})
         tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache)
+        if not plan.explicit_speeds:
+            tables = densify_speeds(tables, model)
         stats = check_tables(surface, model, settings, tables, seed=seed + attempt)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
+                        "stored_speeds": int(tables.speed_mm_s.size),
                         "spacing_mm": float(plan.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
-                        "max_rel_error": stats["max_rel_error"]})
+                        "max_rel_error": stats["max_rel_error"],
+                        **{f"rms_rel_error_{k}": stats[f"rms_rel_error_{k}"] for k in ("direction", "speed", "position", "stroke")}})
         if progress:
             progress(f"tables {tables.a40.shape}: rms error {stats['rms_rel_error']:.3%}")
         if stats["rms_rel_error"] <= tol:
             break
-        # Refine every axis whose family error exceeds the tolerance (the worst one if none
-        # does on its own); explicit nodes stay as given.
-        order = sorted(("direction", "speed", "position"), key=lambda k: -stats[f"rms_rel_error_{k}"])
-        wanted = [k for k in order if stats[f"rms_rel_error_{k}"] > tol] or order[:1]
         refined = False
-        for axis in wanted:
+        chosen = axes_to_refine(stats, tol)
+        # When no chosen axis can be refined (node limits, explicit nodes), try the others.
+        fallback = [a for a in ("direction", "speed", "position") if a not in chosen]
+        for axis in chosen + fallback:
+            if refined and axis in fallback:
+                break
             if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72:
                 lo, hi = scene.direction_range_deg
                 step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, plan.directions_deg.size) / 2
