@@ -110,7 +110,7 @@ def direction_powers(
     px = sampler.surface.pixel_size_mm
     u, v = nodes_mm[:, 0], nodes_mm[:, 1]
     xi_cut = kernel_cut_cyc_per_mm(sigma)
-    pad = FOOTPRINT_TRUNCATION * sigma + 2.0 / xi_cut + 2 * px  # footprint support plus the cropped kernel's ringing
+    pad = FOOTPRINT_TRUNCATION * sigma + 2 * px  # the footprint's support (the cropped kernel's ringing is below 1e-4)
     frame, n_rows, n_cols = sampler.frame(direction_deg, u, v, line_margin_mm(speeds.max(), settings, px), pad)
     lines = sampler.sample(frame, n_rows, n_cols)
     jf, kf = frame.index_coords(u, v)
@@ -127,7 +127,9 @@ def direction_powers(
         # Join each line's ends (a linear trend is invisible to the weighting, which vanishes at
         # 0 Hz) so the circular transform sees no step.
         ramp = np.linspace(0.0, 1.0, n_g, dtype=np.float32)
-        seg = seg - seg[:, :1] - (seg[:, -1:] - seg[:, :1]) * ramp
+        first, last = seg[:, :1].copy(), seg[:, -1:].copy()
+        seg = seg - first
+        seg -= (last - first) * ramp
         spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)
         length_mm = n_g * da
         k = scipy.fft.rfftfreq(n_g, d=da)
@@ -156,8 +158,9 @@ def direction_powers(
             kernel = along_kernel_ft(xi_a, s, settings).astype(np.float32)[None, :] * base / np.float32(n_out)
             wp, wnp = model.weights(s * k[:n_keep])
             for ci, w in enumerate((wp, wnp)):
-                z = np.zeros((n_rows, n_out), dtype=np.complex64)
+                z = np.empty((n_rows, n_out), dtype=np.complex64)
                 np.multiply(spectrum[:, :n_keep], (2.0 * w * res[:n_keep] * n_out / n_g).astype(np.float32), out=z[:, :n_keep])
+                z[:, n_keep:] = 0.0
                 z[:, 0] = 0.0
                 z = scipy.fft.ifft(z, axis=1, workers=workers, overwrite_x=True)
                 power = np.square(z.real)
