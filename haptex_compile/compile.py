@@ -18,11 +18,15 @@ from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import Scene
 from haptex_compile.sources import SourceOptions, SourceResult, load_source
 from haptex_compile.surface import Surface
-from haptex_compile.tables import Tables, build_tables, densify_speeds, table_grid
+from haptex_compile.tables import MAX_TABLE_NODES, Tables, build_tables, densify_speeds, halve_grid, table_grid
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
 CHECK_WORKERS = 2
+# Refinement stops before the tables would hold more values than this per colour (64 MB as
+# float32; memory while compiling is several times that), and the asset says the tolerance
+# was not met.
+MAX_TABLE_VALUES = 16_000_000
 MAX_REFINEMENTS = 3
 
 
@@ -202,8 +206,8 @@ def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
              "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
     chosen: list[str] = []
     for axis in sorted(share, key=lambda a: -share[a]):
-        if math.sqrt(sum(v * v for v in share.values())) <= 0.85 * tolerance:
-            break
+        if math.sqrt(sum(v * v for v in share.values())) <= 0.85 * tolerance or share[axis] < 0.25 * tolerance:
+            break  # met, or what is left is too small a share to be worth doubling an axis for
         chosen.append(axis)
         share[axis] /= 3.0
     return chosen or [max(share, key=lambda a: share[a])]
@@ -215,17 +219,16 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
     plan = initial_plan(scene, surface)
     tol = scene.tolerance
     history = []
-    caches: dict[float, dict] = {}
+    cache: dict = {}
+    grid = table_grid(surface, plan.spacing_mm)
     for attempt in range(MAX_REFINEMENTS + 1):
-        grid = table_grid(surface, plan.spacing_mm)
-        cache = caches.setdefault(round(plan.spacing_mm, 12), {})
         tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache)
         if not plan.explicit_speeds:
             tables = densify_speeds(tables, model)
         stats = check_tables(surface, model, settings, tables, seed=seed + attempt)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),
-                        "spacing_mm": float(plan.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
+                        "spacing_mm": float(grid.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
                         "max_rel_error": stats["max_rel_error"],
                         **{f"rms_rel_error_{k}": stats[f"rms_rel_error_{k}"] for k in ("direction", "speed", "position", "stroke")}})
         if progress:
@@ -236,21 +239,29 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
         chosen = axes_to_refine(stats, tol)
         # When no chosen axis can be refined (node limits, explicit nodes), try the others.
         fallback = [a for a in ("direction", "speed", "position") if a not in chosen]
+        n_dir, n_speed, n_nodes = plan.directions_deg.size, tables.speed_mm_s.size, grid.shape[0] * grid.shape[1]
         for axis in chosen + fallback:
             if refined and axis in fallback:
                 break
-            if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72:
+            if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72 \
+                    and 2 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES:
                 lo, hi = scene.direction_range_deg
                 step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, plan.directions_deg.size) / 2
                 plan.directions_deg = _direction_nodes(lo, hi, step)
+                n_dir = plan.directions_deg.size
                 refined = True
-            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64:
+            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 \
+                    and 2 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES:
                 lo, hi = scene.speed_range_mm_s
                 ratio = (hi / lo) ** (1.0 / max(1, plan.speeds_mm_s.size - 1))
                 plan.speeds_mm_s = _speed_nodes(lo, hi, math.sqrt(ratio))
+                n_speed = 2 * n_speed - 1
                 refined = True
-            elif axis == "position" and not plan.explicit_spacing and plan.spacing_mm > 2 * surface.pixel_size_mm:
-                plan.spacing_mm = plan.spacing_mm / 2
+            elif (axis == "position" and not plan.explicit_spacing and grid.spacing_mm > 2 * surface.pixel_size_mm
+                  and 4 * n_nodes <= MAX_TABLE_NODES and 4 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES):
+                grid = halve_grid(grid)  # nested: the fast path has these nodes already
+                plan.spacing_mm = grid.spacing_mm
+                n_nodes = grid.shape[0] * grid.shape[1]
                 refined = True
         if not refined:
             break

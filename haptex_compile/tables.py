@@ -192,6 +192,13 @@ def _direction_powers(
     return np.maximum(out, 0.0)
 
 
+def halve_grid(grid: TableGrid) -> TableGrid:
+    """The grid at half the spacing whose every other node (``[::2, ::2]``) is `grid`."""
+    nj, ni = grid.shape
+    shape = (2 * nj, 2 * ni) if grid.periodic else (2 * nj - 1, 2 * ni - 1)
+    return TableGrid(grid.origin_mm, grid.basis_mm / 2.0, shape, grid.periodic)
+
+
 def line_sampler(surface: Surface) -> LineSampler:
     """The surface's line sampler, kept on the surface so refinement rounds reuse it."""
     sampler = surface.__dict__.get("_line_sampler")
@@ -225,8 +232,8 @@ def build_tables(
     workers : int
         Directions computed in parallel threads.
     cache : dict, optional
-        Channel powers already computed on this grid, keyed by (direction, speed); filled in,
-        so refining the nodes only computes the new ones.
+        Channel powers already computed, keyed by grid, direction and speed; filled in, so
+        refining the nodes (or halving the grid, see :func:`halve_grid`) only computes new ones.
     """
     directions = np.asarray(directions_deg, dtype=float)
     speeds = np.asarray(speeds_mm_s, dtype=float)
@@ -234,28 +241,40 @@ def build_tables(
         raise ValueError("directions must be strictly increasing in [0, 180)")
     if speeds.ndim != 1 or speeds.size == 0 or np.any(np.diff(speeds) <= 0) or speeds[0] <= 0 or not np.all(np.isfinite(speeds)):
         raise ValueError("speeds must be positive, finite and strictly increasing")
-    nodes = grid.nodes_mm().reshape(-1, 2)
     cache = {} if cache is None else cache
     # Fast path (sheared lines, 2-D spectral averaging) where the surface's extension is periodic
     # on its coefficient array and the footprint is not a point; rotated lines otherwise.
     sampler = line_sampler(surface) if settings.footprint_sigma_mm > 0 and supports(surface) else None
+    # The fast path's cost is in the averaged fields, not in reading nodes from them: it reads the
+    # nodes of the half-spacing grid too, so refining the spacing later costs nothing.
+    half = halve_grid(grid) if sampler is not None else None
 
-    def key(d: float, s: float) -> tuple[float, float]:
-        return (round(float(d), 9), round(float(s), 9))
+    def key(g: TableGrid, d: float, s: float) -> tuple:
+        return (g.shape, round(g.spacing_mm, 12), round(float(d), 9), round(float(s), 9))
+
+    def lookup(d: float, s: float) -> np.ndarray | None:
+        hit = cache.get(key(grid, d, s))
+        if hit is None and half is not None:
+            finer = cache.get(key(half, d, s))
+            hit = None if finer is None else finer[:, ::2, ::2]
+        return hit
 
     def one(d: float) -> None:
-        missing = np.array([s for s in speeds if key(d, s) not in cache])
-        if missing.size:
-            if sampler is not None:
-                powers = direction_powers(sampler, model, settings, nodes, d, missing)
-            else:
-                powers = _direction_powers(surface, model, settings, nodes, d, missing)
-            for s, pw in zip(missing, powers):
-                cache[key(d, s)] = pw
+        missing = np.array([s for s in speeds if lookup(d, s) is None])
+        if missing.size == 0:
+            return
+        target = half if half is not None else grid
+        nodes = target.nodes_mm().reshape(-1, 2)
+        if sampler is not None:
+            powers = direction_powers(sampler, model, settings, nodes, d, missing)
+        else:
+            powers = _direction_powers(surface, model, settings, nodes, d, missing)
+        for s, pw in zip(missing, powers):
+            cache[key(target, d, s)] = pw.reshape((2,) + target.shape)
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         list(pool.map(one, directions))
-    powers = np.stack([np.stack([cache[key(d, s)] for s in speeds]) for d in directions])  # [nd, ns, 2, n]
+    powers = np.stack([np.stack([lookup(d, s).reshape(2, -1) for s in speeds]) for d in directions])  # [nd, ns, 2, n]
     shape = (directions.size, speeds.size) + grid.shape
     ip = np.sqrt(powers[:, :, 0]).reshape(shape)
     inp = np.sqrt(powers[:, :, 1]).reshape(shape)
