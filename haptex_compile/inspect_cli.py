@@ -62,6 +62,104 @@ def summary(path: str) -> str:
     return "\n".join(lines)
 
 
+def is_playback_record(path: str) -> bool:
+    """True for an HDF5 file written by ``haptex-play --record``."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return f.attrs.get("format") == "haptex-playback-record"
+    except OSError:
+        return False  # not HDF5: the asset reader gives the one-line error
+
+
+def record_summary(path: str) -> str:
+    """A readable multi-line summary of a playback record (``haptex-play --record``).
+
+    Counts and statistics are computed from the ``/frames`` datasets (so they hold for any
+    record version); the run's own summary attributes fill in what the datasets cannot tell.
+    Send error = time the transport accepted the packet minus its due time (window start minus
+    the lead); drift = median send error over the last tenth of the frames minus the first tenth
+    (the player's definitions, docs/usb-protocol.md).
+    """
+    import h5py
+
+    from playback.interp import FLAG_NAMES
+
+    def ms(x: float) -> str:
+        return f"{round(float(x), 3) + 0.0:.3f}"  # + 0.0: no "-0.000" from rounding noise
+
+    def attr(f, key, default=None):
+        value = f.attrs.get(key, default)
+        if isinstance(value, bytes):
+            value = value.decode()
+        return value.item() if isinstance(value, np.generic) else value
+
+    with h5py.File(path, "r") as f:
+        fr = f["frames"]
+        n = int(fr["t_s"].shape[0])
+        n_contactors = int(fr["a40"].shape[1])
+        n_channels = int(fr["codes"].shape[2])
+        frame_ms = float(attr(f, "frame_ms", 25.0))
+        lead_ms = float(attr(f, "lead_ms", float("nan")))
+        prep_ms = attr(f, "prep_ms")
+        index = fr["index"][()]
+        late = fr["late"][()].astype(bool)
+        deadline, sent = fr["deadline_s"][()], fr["sent_s"][()]
+        render_us = fr["render_us"][()].astype(np.float64)
+        latency_us = fr["latency_us"][()].astype(np.float64)
+        clamped = fr["clamped"][()].astype(np.int64)
+        nonfinite = fr["nonfinite"][()].astype(np.int64)
+        flags = fr["flags"][()]
+        a40, a320 = fr["a40"], fr["a320"]
+        a40_max = float(np.max(a40)) if n else float("nan")
+        a320_max = float(np.max(a320)) if n else float("nan")
+        waveforms = f["waveforms/volts"].shape if "waveforms/volts" in f else None
+        rate = attr(f["waveforms"], "sample_rate_hz") if waveforms else None
+        mode, device, clock = attr(f, "mode", "?"), attr(f, "device", "?"), attr(f, "clock", "?")
+        scheduling = attr(f, "scheduling")
+        skipped = attr(f, "frames_skipped")
+        stopped_by, zero_sent = attr(f, "stopped_by", "?"), attr(f, "zero_frame_sent")
+        asset, version = attr(f, "asset", "?"), attr(f, "format_version", "?")
+        err_max = attr(f, "tables_max_rel_error")
+    if skipped is None:  # older records: gaps in the frame numbers are the skipped frames
+        skipped = int(index[-1] + 1 - n) if n else 0
+    head = f"{path}: haptex-play record {version} (mode {mode}, device {device}, {clock} clock"
+    head += f", {scheduling})" if scheduling else ")"
+    lines = [head, f"  asset      {asset}"]
+    if not n:
+        lines.append("  frames     none sent")
+        lines.append(f"  stop       {stopped_by}; all-zero frame sent: {'yes' if zero_sent else 'no'}")
+        return "\n".join(lines)
+    duration = (deadline[-1] - deadline[0]) + frame_ms * 1e-3  # the schedule they span
+    lines.append(f"  frames     {n} sent over {duration:.2f} s ({frame_ms:g} ms each), {int(skipped)} skipped; "
+                 f"{n_contactors} contactors, {n_channels} device channels")
+    timing = f"  timing     {int(late.sum())} late (accepted after their window started)"
+    if np.isfinite(lead_ms):
+        send_err = (sent - (deadline - lead_ms * 1e-3)) * 1e3
+        m = max(1, n // 10)
+        drift = float(np.median(send_err[-m:]) - np.median(send_err[:m]))
+        timing += (f", worst {float(np.max(sent - deadline)) * 1e3:+.2f} ms from window start; lead {lead_ms:g} ms"
+                   + (f", prep {float(prep_ms):g} ms" if prep_ms is not None else "")
+                   + f"\n             send error median {ms(np.median(send_err))} ms, p99 {ms(np.percentile(send_err, 99))} ms, "
+                   f"max {ms(send_err.max())} ms; drift {ms(drift)} ms")
+    lines.append(timing)
+    lines.append(f"  render     median {np.median(render_us):.0f} us, p99 {np.percentile(render_us, 99):.0f} us, "
+                 f"max {render_us.max():.0f} us; latency median {np.median(latency_us):.0f} us, max {latency_us.max():.0f} us")
+    flag_counts = ", ".join(f"{name} {int(np.count_nonzero(flags & bit))}" for bit, name in FLAG_NAMES.items())
+    lines.append(f"  safety     {int(clamped.sum())} contactor amplitudes clamped (in {int(np.count_nonzero(clamped))} frames), "
+                 f"{int(nonfinite.sum())} non-finite or negative set to 0")
+    lines.append(f"  flags      {flag_counts} (contactor-frames)")
+    amp = f"  amplitude  max a40 {a40_max:.3g} um, a320 {a320_max:.3g} um before calibration"
+    if err_max is not None:
+        amp += f"; tables' stated max error {float(err_max):.2%}"
+    lines.append(amp)
+    if waveforms:
+        lines.append(f"  waveforms  {waveforms[0]} samples x {waveforms[1]} channels at {float(rate):g} Hz")
+    lines.append(f"  stop       {stopped_by}; all-zero frame sent: {'yes' if zero_sent else 'no'}")
+    return "\n".join(lines)
+
+
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--validate", is_flag=True, help="Check each file against schemas/asset.schema.json and the reader; exit 1 if any fails.")
@@ -95,4 +193,4 @@ def main(files, validate, plot_path, speed, direction):
         click.echo(f"wrote {plot_path}")
         return
     for path in files:
-        click.echo(summary(path))
+        click.echo(record_summary(path) if is_playback_record(path) else summary(path))

@@ -30,12 +30,18 @@ LOG = logging.getLogger("haptex.play")
 @click.option("--waveform-rate", default=8000.0, show_default=True, help="Waveform sample rate (Hz).")
 @click.option("--fast", is_flag=True,
               help="Run unpaced on a virtual clock (no real-time waiting); not for --device usb or --live.")
-@click.option("--lead-ms", default=5.0, show_default=True, help="Render and send each frame this long before it starts.")
+@click.option("--lead-ms", default=5.0, show_default=True,
+              help="Send each frame this long before its window starts (a frame is late if sent after that start).")
+@click.option("--prep-ms", default=2.0, show_default=True,
+              help="Wake up this long before each send to render (absorbs OS wake-up latency).")
+@click.option("--realtime/--no-realtime", default=True, show_default=True,
+              help="Ask for real-time scheduling (SCHED_FIFO, else nice) while playing on the real clock; "
+                   "falls back silently (-v tells) when not permitted.")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
 @common_options
 def main(asset: str, device: str, profile_path: str | None, sweep: str | None, trajectory_csv: str | None,
          live: bool, mode: str, record_path: str | None, waveforms: bool, waveform_rate: float, fast: bool,
-         lead_ms: float, max_frames: int | None) -> None:
+         lead_ms: float, prep_ms: float, realtime: bool, max_frames: int | None) -> None:
     """Play ASSET (a .tact.h5 tactile asset) on a vibrotactile array.
 
     Frames are scheduled every frame period (25 ms) on the monotonic clock. The default device is
@@ -58,8 +64,8 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         raise click.UsageError("--waveforms needs --device sim (only the emulator synthesises waveforms)")
     if fast and (device == "usb" or live):
         raise click.UsageError("--fast is for dry runs: not with --device usb or --live")
-    if lead_ms < 0:
-        raise click.UsageError("--lead-ms must be >= 0")
+    if lead_ms < 0 or prep_ms < 0:
+        raise click.UsageError("--lead-ms and --prep-ms must be >= 0")
     if max_frames is not None and max_frames < 1:
         raise click.UsageError("--max-frames must be >= 1")
 
@@ -92,8 +98,8 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         recorder = Recorder(record_path, data.n_contactors, profile.n_channels,
                             protocol.frame_size(profile.n_channels))
     player = Player(data, profile, transport, source, clock=clock, mode=mode, recorder=recorder,
-                    lead_ms=lead_ms, max_frames=max_frames, emulator=emulator,
-                    waveform_rate_hz=waveform_rate if waveforms else None)
+                    lead_ms=lead_ms, prep_ms=prep_ms, realtime=realtime and not fast, max_frames=max_frames,
+                    emulator=emulator, waveform_rate_hz=waveform_rate if waveforms else None)
     summary = player.run()
     click.echo(f"haptex-play: {summary.line()}")
     if record_path is not None:

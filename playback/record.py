@@ -11,10 +11,12 @@ contactors, m = device channels, L = packet bytes:
 * ``/frames/flags`` uint8 [n, c]: interpolation flags (playback.interp)
 * ``/frames/codes`` uint16 [n, 2, m]: DAC codes sent (row 0: 40 Hz, row 1: 320 Hz)
 * ``/frames/render_us``, ``/frames/latency_us`` float32 [n]: render time; input snapshot to
-  packet accepted by the transport (end-to-end on the host)
+  packet accepted by the transport (end-to-end on the host, including the wait for the packet's
+  due time: about ``prep``)
 * ``/frames/input_age_ms`` float32 [n]: frame centre minus the newest trajectory sample used
 * ``/frames/gain`` float32 [n]: fade applied for a stale live source (1 = none)
-* ``/frames/late`` uint8 [n]: 1 if the packet left after the frame's scheduled start
+* ``/frames/late`` uint8 [n]: 1 if the transport accepted the packet after the frame's window
+  started (``sent_s > deadline_s``; docs/usb-protocol.md, "Host timing")
 * ``/frames/clamped``, ``/frames/nonfinite`` uint16 [n]: safety counts of the frame
 * ``/frames/sequence`` uint32 [n], ``/frames/packet`` uint8 [n, L]: what went over the wire
 * ``/waveforms/volts`` float32 [samples, m] and ``/waveforms/t_s`` (only with ``--waveforms``)
@@ -51,6 +53,13 @@ class Recorder:
         Root attributes (JSON-encoded when not a plain number or string).
     chunk : int
         Frames buffered in memory between writes.
+
+    Attributes
+    ----------
+    hold : bool
+        While True (set by the player during real-time playback) :meth:`append` only buffers,
+        up to ``max_pending`` frames, and the player calls :meth:`flush` when a frame has just
+        been sent and the next one is far enough away: the HDF5 writes never delay a frame.
     """
 
     _SPEC = {
@@ -78,6 +87,8 @@ class Recorder:
             self.frames.create_dataset(name, shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype,
                                        chunks=(chunk,) + shape, track_times=False)
         self.chunk = chunk
+        self.hold = False
+        self.max_pending = 8 * chunk  # bounds the memory held while flushes are deferred
         self._buf: dict[str, list[Any]] = {k: [] for k in spec}
         self.n = 0
         self.set_attrs(attrs or {})
@@ -91,11 +102,24 @@ class Recorder:
                 value = json.dumps(value, default=float)
             self.file.attrs[key] = value
 
+    @property
+    def pending(self) -> int:
+        """Frames buffered and not yet written."""
+        return len(self._buf["t_s"])
+
+    @property
+    def flush_due(self) -> bool:
+        """A chunk or more is buffered."""
+        return self.pending >= self.chunk
+
     def append(self, **frame: Any) -> None:
-        """Add one frame; every field of the layout must be given."""
+        """Add one frame; every field of the layout must be given.
+
+        The arrays are kept by reference until the next flush: pass arrays nobody modifies.
+        """
         for key in self.spec:
             self._buf[key].append(frame[key])
-        if len(self._buf["t_s"]) >= self.chunk:
+        if self.pending >= (self.max_pending if self.hold else self.chunk):
             self.flush()
 
     def flush(self) -> None:

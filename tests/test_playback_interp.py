@@ -145,3 +145,55 @@ def test_scalar_and_broadcast_inputs():
     a40, _, _ = table_amplitudes(t, 1.0, [1.0, 2.0], 20.0, 0.0)
     assert a40.shape == (2,)
     np.testing.assert_allclose(a40, 2.0 + np.log(20.0), rtol=1e-6)
+
+
+# ---------------------------------------------------------------- the player's per-frame path
+def _rigid_reference(t, xy, state):
+    """The general path the rigid-array lookup must reproduce: kinematics, then table_amplitudes."""
+    from playback.trajectory import MotionState, contactor_kinematics
+
+    return table_amplitudes(t, *contactor_kinematics(MotionState(0.0, *state), xy))
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_rigid_array_lookup_equals_general_path(periodic):
+    from playback.interp import RigidArrayLookup
+
+    rng = np.random.default_rng(11)
+    dirs = np.array([5.0, 40.0, 95.0, 150.0])  # non-uniform, first node not at 0°
+    speeds = np.array([8.0, 30.0, 120.0])
+    a40 = rng.uniform(0, 10, (4, 3, 6, 7)).astype(np.float32)
+    a320 = rng.uniform(0, 2, (4, 3, 6, 7)).astype(np.float32)
+    basis = np.array([[0.3, 0.05], [-0.04, 0.25]])  # oblique
+    t = Tables(a40=a40, a320=a320, direction_deg=dirs, speed_mm_s=speeds, origin_mm=[0.2, -0.1],
+               grid_basis_mm=basis, periodic=periodic)
+    xy = rng.uniform(-0.2, 0.2, (9, 2))  # small array: stays inside the non-periodic grid
+    lookup = RigidArrayLookup(t.interpolator, xy)
+    centre = np.array([0.2, -0.1]) + 3.0 * basis[0] + 2.5 * basis[1]
+    flags_seen = 0
+    for k in range(400):
+        u0, v0 = centre + rng.uniform(-0.15, 0.15, 2) + (rng.uniform(-30, 30, 2) if periodic else 0.0)
+        vel = rng.normal(0, 60, 2) * (0.0 if k % 9 == 0 else 1.0)  # at rest: fades to 0
+        if k % 7 == 0:
+            vel = vel * 20.0  # above the top node
+        state = (u0, v0, rng.uniform(-400, 400), vel[0], vel[1], rng.normal(0, 200) * (k % 2))
+        got = lookup(*state)
+        assert got is not None
+        want = _rigid_reference(t, xy, state)
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(got[2], want[2])
+        flags_seen |= int(np.bitwise_or.reduce(got[2]))
+    assert flags_seen == ABOVE_RANGE | BELOW_RANGE  # both speed clamps were exercised
+
+
+def test_rigid_array_lookup_defers_outside_and_nonfinite_to_general_path():
+    from playback.interp import RigidArrayLookup
+
+    t = tables_from(linear_field, [0.0], [50.0], nj=4, ni=5)
+    xy = np.array([[0.0, 0.0], [1.0, 0.0]])
+    lookup = RigidArrayLookup(t.interpolator, xy)
+    assert lookup(1.0, 1.0, 0.0, 50.0, 0.0, 0.0) is not None
+    assert lookup(3.5, 1.0, 0.0, 50.0, 0.0, 0.0) is None  # contactor 2 at u = 4.5 > 4: mirrored elsewhere
+    assert lookup(float("nan"), 1.0, 0.0, 50.0, 0.0, 0.0) is None
+    assert lookup(1.0, 1.0, 0.0, float("inf"), 0.0, 0.0) is None

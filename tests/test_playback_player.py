@@ -309,3 +309,30 @@ def test_import_stays_light():
     modules = {line.split("|")[-1].strip().split(".")[0] for line in out.splitlines() if "|" in line}
     for heavy in ("scipy", "cv2", "skimage", "OpenEXR", "matplotlib", "jsonschema", "haptex_compile"):
         assert heavy not in modules
+
+
+def test_table_renderer_falls_back_to_general_path(tmp_path):
+    """A non-finite state and contactors beyond a non-periodic table's edge go through the general
+    path (INVALID, OUTSIDE with mirroring); both paths give the same frame where both apply."""
+    from playback.interp import INVALID, OUTSIDE, table_amplitudes
+    from playback.player import TableRenderer
+    from playback.trajectory import MotionState, contactor_kinematics
+
+    from asset_factory import haptex24_layout_mm
+
+    # Grid 0 .. 7.75 mm; the array at 1 mm pitch spans 5 x 3 mm.
+    asset = read_asset(write_test_asset(tmp_path / "np.tact.h5", periodic=False, contactors_mm=haptex24_layout_mm(1.0)))
+    r = TableRenderer(asset)
+    inside = MotionState(0.0, 4.0, 4.0, 20.0, 80.0, 10.0, 30.0)
+    outside = MotionState(0.0, 7.0, 4.0, 0.0, 80.0, 0.0, 0.0)  # the right columns are beyond the edge
+    bad = MotionState(0.0, float("nan"), 4.0, 0.0, 80.0, 0.0, 0.0)
+    assert r.lookup(4.0, 4.0, 20.0, 80.0, 10.0, 30.0) is not None  # the per-frame path applies
+    assert r.lookup(7.0, 4.0, 0.0, 80.0, 0.0, 0.0) is None
+    for state in (inside, outside):
+        got = r.render(0, state)
+        want = table_amplitudes(asset.tables, *contactor_kinematics(state, asset.contactors_mm))
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w, rtol=1e-12)
+    assert np.any(r.render(0, outside)[2] & OUTSIDE)
+    a40, a320, flags = r.render(0, bad)
+    assert not a40.any() and not a320.any() and np.all(flags == INVALID)

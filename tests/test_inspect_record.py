@@ -1,0 +1,74 @@
+"""``haptex-inspect rec.h5`` on a playback record prints the run's summary instead of failing."""
+from __future__ import annotations
+
+import re
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from asset_factory import write_test_asset
+from playback import protocol
+from playback.asset import read_asset
+from playback.clock import VirtualClock
+from playback.device import DEFAULT_PROFILE, profile_from_dict
+from playback.player import Player
+from playback.record import Recorder
+from playback.trajectory import sweep_trajectory
+from playback.transport import make_transport
+
+LEAD_MS, PREP_MS = 5.0, 2.0
+
+
+@pytest.fixture(scope="module")
+def record(tmp_path_factory):
+    """80 frames at 80 mm/s; frame 10 wakes 3 ms too late to make its window start; the
+    displacement limit (1 µm) is below every amplitude of the test field at that speed
+    (a40 + a320 >= (5 - 1.5 - 1) * 0.97 + (0.8 - 0.2 - 0.3) * 0.94 > 2.7 µm), so every
+    contactor of every frame is clamped."""
+    d = tmp_path_factory.mktemp("rec")
+    asset = read_asset(write_test_asset(d / "a.tact.h5"))
+    doc = {**DEFAULT_PROFILE, "limits": {"max_voltage_v_rms": 40.0, "max_displacement_um": 1.0}}
+    profile = profile_from_dict(doc)
+    wakes = []
+
+    def oversleep():
+        wakes.append(None)
+        return (PREP_MS + LEAD_MS + 3.0) * 1e-3 if len(wakes) == 11 else 0.0
+    clock = VirtualClock(10.0, oversleep=oversleep)
+    transport, emu = make_transport("sim", profile, clock)
+    path = d / "rec.h5"
+    rec = Recorder(path, asset.n_contactors, profile.n_channels, protocol.frame_size(profile.n_channels))
+    Player(asset, profile, transport, sweep_trajectory(80.0, 0.0, 2.0), clock=clock, recorder=rec, emulator=emu,
+           lead_ms=LEAD_MS, prep_ms=PREP_MS).run()
+    return path
+
+
+def test_inspect_summarises_a_playback_record(record):
+    from haptex_compile.inspect_cli import main
+
+    r = CliRunner().invoke(main, [str(record)])
+    assert r.exit_code == 0, r.output
+    out = r.output
+    assert "haptex-play record" in out and "mode tables" in out and "device sim" in out
+    assert re.search(r"80 sent over 2\.00 s \(25 ms each\), 0 skipped; 24 contactors, 24 device channels", out)
+    # One frame late, by exactly the oversleep beyond prep + lead; on simulated time every
+    # other send is exactly on time, so no drift, and the worst send error is lead + 3 ms.
+    assert re.search(r"1 late .*worst \+3\.00 ms from window start", out)
+    assert re.search(r"max 8\.000 ms; drift 0\.000 ms", out)
+    assert "1920 contactor amplitudes clamped (in 80 frames)" in out  # 80 frames x 24 contactors
+    assert "above_range 0, below_range 0, outside 0, invalid 0" in out
+    with h5py.File(record) as f:
+        render = f["frames/render_us"][()].astype(np.float64)
+    assert f"render     median {np.median(render):.0f} us" in out
+    assert "all-zero frame sent: yes" in out
+
+
+def test_inspect_record_and_asset_together(record, tmp_path):
+    from haptex_compile.inspect_cli import main
+
+    asset = write_test_asset(tmp_path / "b.tact.h5")
+    r = CliRunner().invoke(main, [str(record), str(asset)])
+    assert r.exit_code == 0, r.output
+    assert "haptex-play record" in r.output and "haptex tactile asset" in r.output
