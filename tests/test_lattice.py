@@ -94,6 +94,11 @@ def test_self_similarity_rejects_shifts_without_overlap():
     ("slub 5%", 1),
     ("noise 20%", 2),
     ("2.5 periods", 0), ("2.5 periods", 1),
+    # seeds that an integer-lag score got wrong: super-lattices with near-integer vectors
+    # outscored 3-8 px and oblique lattices whose NCC peaks fall between samples
+    ("small period", 6), ("small period", 13), ("oblique", 7), ("oblique", 11),
+    # a tile with a strong half-period harmonic (its sub-lattice self-correlates at 0.9)
+    ("stain 5%", 14),
 ])
 def test_hard_case_lattice_recovered(name, seed):
     case = make_hard_case(name, seed)
@@ -108,6 +113,23 @@ def test_three_pixel_period_and_thirty_degree_basis():
     t1, t2 = basis_from_geometry(18.0, 25.0, 30.0, -10.0)
     _assert_same_lattice(find_lattice(weave_image((256, 256), t1, t2, kind="twill", seed=2)),
                          t1, t2)
+
+
+def test_sub_pixel_self_correlation_is_exact_between_samples():
+    # a 3-4 px lattice with sub-pixel vectors: its correlation peaks are 1-2 samples wide, and
+    # the image is exactly periodic, so rho must be ~1 at t1, t2, t1 + t2 wherever they fall
+    from haptex_compile.lattice import _prepare_both, _SpectralAcf
+
+    t1, t2 = basis_from_geometry(3.37, 3.81, 83.0, 17.0)
+    img = weave_image((200, 200), t1, t2, kind="random", seed=5)
+    _, soft = _prepare_both(img, 30.0)
+    acf = _SpectralAcf(soft, (60, 60))
+    shell = np.array([t1, t2, t1 + t2, t1 - t2])
+    # the taper's edge weights are the only loss: well above the 0.9 an integer grid reads
+    assert acf.at(shell).min() > 0.98
+    # Newton steps from 0.3 px away land on the construction's vectors
+    found = acf.refine_peaks(shell + np.array([0.3, -0.2]))
+    assert np.abs(found - shell).max() < 0.01
 
 
 def test_strong_harmonic_does_not_win():
@@ -258,6 +280,50 @@ def test_uneven_light_is_flattened_before_averaging():
     avg = average_tile(lit, find_lattice(lit))
     assert avg.synthetic.shape == lit.shape
     assert np.isfinite(avg.synthetic).all()
+
+
+def test_large_image_averages_a_fixed_subset_of_repetitions():
+    from haptex_compile.tiles import MAX_REPETITIONS
+
+    t1, t2 = basis_from_geometry(12.3, 14.6, 78.0, 8.0)
+    clean = weave_image((900, 900), t1, t2, kind="twill", seed=2)
+    noisy = add_noise(clean, 0.2, seed=4)
+    lat = Lattice(True, t1, t2, 1.0, "given", {})
+    avg = average_tile(noisy, lat, flatten_sigma_px=None)
+    cell = abs(np.linalg.det(np.column_stack([t1, t2])))
+    # ~900^2 / cell repetitions exist; at most MAX_REPETITIONS of them are combined
+    assert avg.n_repetitions == MAX_REPETITIONS
+    assert avg.n_repetitions_available > 0.8 * (900 - 2 * 20) ** 2 / cell
+    # the median of n samples: 1.2533 sigma / sqrt(n) (sigma ~0.8 x 0.2 after bicubic
+    # resampling, see the test above), plus ~0.007 of pattern interpolation
+    err = float((avg.synthetic - clean)[8:-8, 8:-8].std())
+    assert err < 1.5 * math.hypot(1.2533 * 0.2 / math.sqrt(MAX_REPETITIONS), 0.007)
+    # fixed seed: the same subset, the same result
+    again = average_tile(noisy, lat, flatten_sigma_px=None)
+    np.testing.assert_array_equal(avg.tile, again.tile)
+
+
+def test_painting_is_periodic_across_blocks():
+    # 700 px: several painting blocks; an integer lattice makes the periodicity testable
+    t1, t2 = np.array([12.0, 0.0]), np.array([5.0, 11.0])
+    img = add_noise(weave_image((700, 700), t1, t2, kind="random", seed=1), 0.1, seed=2)
+    s = average_tile(img, Lattice(True, t1, t2, 1.0, "given", {})).synthetic
+    rng = float(s.max() - s.min())
+    # equal up to OpenCV's 1/32 px fixed-point sub-pixel steps (a fraction of a percent)
+    assert np.abs(s[:-11, :-5] - s[11:, 5:]).max() < 0.01 * rng
+    assert np.abs(s[:, :-12] - s[:, 12:]).max() < 0.01 * rng
+
+
+def test_flattening_at_the_samples_matches_flattening_the_image():
+    t1, t2 = basis_from_geometry(15.0, 19.0, 80.0, 0.0)
+    clean = weave_image((256, 256), t1, t2, kind="random", seed=4) + 0.2
+    y, x = np.mgrid[0:256, 0:256] / 255.0
+    lit = clean * (1.0 - 0.6 * x * y)
+    lat = Lattice(True, t1, t2, 1.0, "given", {})
+    inside = average_tile(lit, lat)  # flattens at the sample positions only
+    first = average_tile(flatten_illumination(lit, 2.0 * 19.0), lat, flatten_sigma_px=None)
+    # the light varies by < 1 % across the 4 px of a bicubic kernel: same tile within that
+    assert np.abs(inside.tile - first.tile).max() < 0.01 * float(np.ptp(first.tile))
 
 
 def test_average_tile_rejects_a_non_periodic_lattice():
