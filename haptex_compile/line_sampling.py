@@ -120,14 +120,13 @@ class LineSampler:
         """
         key = (transposed, half)
         if key not in self._columns:
-            c = self.coefficients.T if transposed else self.coefficients
+            # Columns as contiguous rows from the start (transpose once, in float32).
+            ct = np.ascontiguousarray((self.coefficients if transposed else self.coefficients.T), dtype=np.float32)
             if half:  # B-spline at x = m + 1/2: taps m-1..m+2 with weights 1, 23, 23, 1 (/48)
-                vals = (np.roll(c, 1, axis=1) + 23.0 * c + 23.0 * np.roll(c, -1, axis=1) + np.roll(c, -2, axis=1)) / 48.0
+                vals = (np.roll(ct, 1, axis=0) + 23.0 * ct + 23.0 * np.roll(ct, -1, axis=0) + np.roll(ct, -2, axis=0)) / np.float32(48.0)
             else:  # at integer x: taps m-1, m, m+1 with weights 1, 4, 1 (/6)
-                vals = (np.roll(c, 1, axis=1) + 4.0 * c + np.roll(c, -1, axis=1)) / 6.0
-            my = vals.shape[0]
-            rows = np.arange(2 * my + 3) % my
-            self._columns[key] = np.ascontiguousarray(vals.T[:, rows], dtype=np.float32)
+                vals = (np.roll(ct, 1, axis=0) + 4.0 * ct + np.roll(ct, -1, axis=0)) / np.float32(6.0)
+            self._columns[key] = np.concatenate([vals, vals, vals[:, :3]], axis=1)
         return self._columns[key]
 
     def frame(self, direction_deg: float, nodes_u_mm: np.ndarray, nodes_v_mm: np.ndarray,

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 
 
 @dataclass(frozen=True)
@@ -130,7 +131,7 @@ def spline_coefficients(surface: "Surface") -> np.ndarray:
     t = np.clip((rho - RESOLUTION_PASS) / (RESOLUTION_STOP - RESOLUTION_PASS), 0.0, 1.0)
     lowpass = 0.5 * (1.0 + np.cos(np.pi * t))
     bspline = ((4.0 + 2.0 * np.cos(2 * np.pi * ky)) / 6.0) * ((4.0 + 2.0 * np.cos(2 * np.pi * kx)) / 6.0)
-    coeffs = np.fft.irfft2(np.fft.rfft2(ext) * lowpass / bspline, s=ext.shape)[:ny, :nx]
+    coeffs = scipy.fft.irfft2(scipy.fft.rfft2(ext, workers=2) * (lowpass / bspline), s=ext.shape, workers=2)[:ny, :nx]
     object.__setattr__(surface, "_coefficients", coeffs)
     return coeffs
 

@@ -37,6 +37,7 @@ from haptex_compile.line_analysis import direction_powers
 from haptex_compile.line_sampling import LineSampler, supports
 from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
 
+PREFETCH_HALF_NODES = 20_000  # half-spacing nodes read in advance up to this many (see build_tables)
 MAX_TABLE_NODES = 4_000_000
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the line's fastest speed  # per direction and speed; beyond this the grid is refused
 
@@ -245,9 +246,10 @@ def build_tables(
     # Fast path (sheared lines, 2-D spectral averaging) where the surface's extension is periodic
     # on its coefficient array and the footprint is not a point; rotated lines otherwise.
     sampler = line_sampler(surface) if settings.footprint_sigma_mm > 0 and supports(surface) else None
-    # The fast path's cost is in the averaged fields, not in reading nodes from them: it reads the
-    # nodes of the half-spacing grid too, so refining the spacing later costs nothing.
-    half = halve_grid(grid) if sampler is not None else None
+    # The fast path's cost is in the averaged fields, not in reading nodes from them: on small
+    # grids (periodic cells, where a finer spacing is often needed) it reads the nodes of the
+    # half-spacing grid too, so refining the spacing later costs nothing.
+    half = halve_grid(grid) if sampler is not None and 4 * grid.shape[0] * grid.shape[1] <= PREFETCH_HALF_NODES else None
 
     def key(g: TableGrid, d: float, s: float) -> tuple:
         return (g.shape, round(g.spacing_mm, 12), round(float(d), 9), round(float(s), 9))
