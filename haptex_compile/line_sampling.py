@@ -4,8 +4,9 @@ The tables analyse the surface along parallel lines (:mod:`haptex_compile.tables
 rotated lines through a 2-D cubic B-spline costs 16 taps per point. Sheared lines cost 4: in a
 working frame where the direction is within 45 degrees of the x axis (swap u and v otherwise),
 line ``j`` is the set of points ``(x, j + x tan d)`` (pixels) at columns ``x = x0 + k h`` with
-``h`` one pixel (half a pixel for obliquer directions, so the along-line Nyquist frequency stays
-above the resolution weight's cut). At a column, every line needs the spline at the same
+``h`` half a pixel: whole-pixel columns would fold the spline's spectral images (near 1 / pixel)
+back into the band the tables keep, while the continuous surface that the reference renderer
+samples finely keeps them out of it. At a column, every line needs the spline at the same
 fractional row offset, so the surface is first evaluated at the column positions along x (an
 exact 3- or 4-tap filter of the coefficients) and then each column is resampled along y with
 its own 4 B-spline weights. The result is exactly :func:`haptex_compile.surface.sample_height`
@@ -140,7 +141,7 @@ class LineSampler:
         """
         transposed, c, s = working_direction(direction_deg)
         px = self.surface.pixel_size_mm
-        h = 0.5
+        h = 0.5  # see the module docstring: half-pixel columns keep the spline's images out of band
         probe = ShearFrame(transposed, s / c, c, s, h, 0.0, 0, px)
         x, y = probe.working_px(nodes_u_mm, nodes_v_mm)
         jf = y - x * probe.tan_d
