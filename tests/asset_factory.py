@@ -13,6 +13,17 @@ import h5py
 import numpy as np
 
 
+# A tiny surface and scene that compile in seconds (CLI and playback-against-reference tests).
+TINY_SPEC = "brownian:H=0.5,size=64,pixel=20um,rms=5um,seed=2"
+TINY_SCENE = """
+[array]
+grid = { rows = 2, cols = 2, pitch_mm = 1.0 }
+[motion]
+speeds_mm_s = [40, 80]
+directions_deg = [0, 90]
+tolerance = 0.5
+"""
+
 AmplitudeFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 

@@ -8,16 +8,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
-SPEC = "brownian:H=0.5,size=64,pixel=20um,rms=5um,seed=2"
-SCENE = """
-[array]
-grid = { rows = 2, cols = 2, pitch_mm = 1.0 }
-[motion]
-speeds_mm_s = [40, 80]
-directions_deg = [0, 90]
-tolerance = 0.5
-"""
+from asset_factory import TINY_SCENE as SCENE
+from asset_factory import TINY_SPEC as SPEC
 
 
 def run(tool: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:

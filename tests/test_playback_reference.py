@@ -27,15 +27,8 @@ from playback.record import Recorder
 from playback.trajectory import sweep_trajectory
 from playback.transport import make_transport
 
-SCENE = """
-[array]
-grid = { rows = 2, cols = 2, pitch_mm = 1.0 }
-[motion]
-speeds_mm_s = [40, 80]
-directions_deg = [0, 90]
-tolerance = 0.5
-"""
-SPEC = "brownian:H=0.5,size=64,pixel=20um,rms=5um,seed=2"
+from asset_factory import TINY_SCENE as SCENE
+from asset_factory import TINY_SPEC as SPEC
 
 
 @pytest.fixture(scope="module")
