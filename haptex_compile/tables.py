@@ -27,19 +27,19 @@ from scipy import ndimage
 
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.frame_analysis import (
+    FOOTPRINT_TRUNCATION,
     AnalysisSettings,
     across_spacing_mm,
     footprint_offsets,
     frame_window,
     resolution_weight,
 )
-from haptex_compile.line_analysis import direction_powers
+from haptex_compile.line_analysis import direction_powers, line_margin_mm
 from haptex_compile.line_sampling import LineSampler, supports
 from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
 
 PREFETCH_HALF_NODES = 20_000  # half-spacing nodes read in advance up to this many (see build_tables)
-MAX_TABLE_NODES = 4_000_000
-LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the line's fastest speed  # per direction and speed; beyond this the grid is refused
+MAX_TABLE_NODES = 4_000_000  # per direction and speed; beyond this the grid is refused
 
 
 @dataclass(frozen=True)
@@ -129,12 +129,12 @@ def _direction_powers(
     b_nodes = nodes @ nrm
     s_max = float(speeds.max())
     # Whole-line filtering only needs the lines to be long enough that the circular transform's
-    # wrap-around stays out of reach of the window: the weighting settles within about 60 ms.
-    margin = s_max * (settings.frame_ms + LINE_SETTLE_MS) / 1000.0 + 3.0 * sigma + 2 * px
+    # wrap-around stays out of reach of the window (the same margin as the fast path's lines).
+    margin = line_margin_mm(s_max, settings, px)
     a0 = a_nodes.min() - margin
     n_a = scipy.fft.next_fast_len(int(np.ceil((a_nodes.max() + margin - a0) / px)) + 1, real=True)
-    b0 = b_nodes.min() - 3.0 * sigma - 2 * px
-    n_b = int(np.ceil((b_nodes.max() + 3.0 * sigma + 2 * px - b0) / px)) + 1
+    b0 = b_nodes.min() - FOOTPRINT_TRUNCATION * sigma - 2 * px
+    n_b = int(np.ceil((b_nodes.max() + FOOTPRINT_TRUNCATION * sigma + 2 * px - b0) / px)) + 1
     a = a0 + np.arange(n_a) * px
     b = b0 + np.arange(n_b) * px
     # Same continuous surface as sample_height (cubic B-spline), evaluated in C by scipy.
