@@ -240,25 +240,27 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
         # When no chosen axis can be refined (node limits, explicit nodes), try the others.
         fallback = [a for a in ("direction", "speed", "position") if a not in chosen]
         n_dir, n_speed, n_nodes = plan.directions_deg.size, tables.speed_mm_s.size, grid.shape[0] * grid.shape[1]
+
+        def fits(factor: int) -> bool:  # tables `factor` times larger stay under the value cap
+            return factor * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES
+
         for axis in chosen + fallback:
             if refined and axis in fallback:
                 break
-            if axis == "direction" and not plan.explicit_directions and plan.directions_deg.size < 72 \
-                    and 2 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES:
+            if axis == "direction" and not plan.explicit_directions and n_dir < 72 and fits(2):
                 lo, hi = scene.direction_range_deg
-                step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, plan.directions_deg.size) / 2
+                step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, n_dir) / 2
                 plan.directions_deg = _direction_nodes(lo, hi, step)
                 n_dir = plan.directions_deg.size
                 refined = True
-            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 \
-                    and 2 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES:
+            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
                 lo, hi = scene.speed_range_mm_s
                 ratio = (hi / lo) ** (1.0 / max(1, plan.speeds_mm_s.size - 1))
                 plan.speeds_mm_s = _speed_nodes(lo, hi, math.sqrt(ratio))
                 n_speed = 2 * n_speed - 1
                 refined = True
             elif (axis == "position" and not plan.explicit_spacing and grid.spacing_mm > 2 * surface.pixel_size_mm
-                  and 4 * n_nodes <= MAX_TABLE_NODES and 4 * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES):
+                  and 4 * n_nodes <= MAX_TABLE_NODES and fits(4)):
                 grid = halve_grid(grid)  # nested: the fast path has these nodes already
                 plan.spacing_mm = grid.spacing_mm
                 n_nodes = grid.shape[0] * grid.shape[1]
