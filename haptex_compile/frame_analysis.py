@@ -30,6 +30,8 @@ from haptex_compile.colours import TwoColourModel
 
 ANALYSIS_RATE_HZ = 2048.0  # output rate of the envelope; Nyquist 1024 Hz > band top (800 Hz)
 DEFAULT_FOOTPRINT_SIGMA_MM = 0.25
+RESOLVED_PASS = 0.6  # resolution weight: 1 up to this fraction of the map's Nyquist frequency,
+RESOLVED_STOP = 0.9  # and 0 from this one on (see resolution_weight)
 FOOTPRINT_TRUNCATION = 4.0  # footprint Gaussians are cut at 4 sigma (tails of e^-8: a power spike beside the
 # footprint, e.g. at a step, must not change the result the way a 3-sigma cut lets it)
 
@@ -111,7 +113,7 @@ def resolution_weight(k_cyc_per_mm: np.ndarray, pixel_size_mm: float) -> np.ndar
     and the reference renderer see the same band however their samples fall.
     """
     k_nyq = 0.5 / pixel_size_mm
-    t = np.clip((np.abs(np.asarray(k_cyc_per_mm, dtype=float)) / k_nyq - 0.6) / 0.3, 0.0, 1.0)
+    t = np.clip((np.abs(np.asarray(k_cyc_per_mm, dtype=float)) / k_nyq - RESOLVED_PASS) / (RESOLVED_STOP - RESOLVED_PASS), 0.0, 1.0)
     return 0.5 * (1.0 + np.cos(np.pi * t))
 
 

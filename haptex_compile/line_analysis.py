@@ -30,8 +30,8 @@ import scipy.fft
 from scipy import ndimage
 
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, AnalysisSettings, resolution_weight
-from haptex_compile.line_sampling import RESOLVED_FRACTION, LineSampler
+from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
+from haptex_compile.line_sampling import LineSampler
 
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
@@ -133,7 +133,7 @@ def direction_powers(
         spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)
         length_mm = n_g * da
         k = scipy.fft.rfftfreq(n_g, d=da)
-        n_res = int(np.searchsorted(k, RESOLVED_FRACTION * k_nyq_map)) + 1
+        n_res = int(np.searchsorted(k, RESOLVED_STOP * k_nyq_map)) + 1
         res = resolution_weight(k, px)
         kk = int(np.ceil(xi_cut * length_mm))
         kj = int(np.ceil(xi_cut * n_rows * px * (abs(frame.sin_d) + frame.cos_d)))

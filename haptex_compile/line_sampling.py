@@ -25,10 +25,6 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from haptex_compile.surface import Surface, _bspline_weights, _wraps, spline_coefficients
 
-# Along-line sample spacing must resolve up to this fraction of the map's Nyquist frequency
-# (where :func:`haptex_compile.frame_analysis.resolution_weight` reaches zero).
-RESOLVED_FRACTION = 0.9
-
 
 def supports(surface: Surface) -> bool:
     """Whether the surface's extension is periodic on its coefficient array (fast path)."""
