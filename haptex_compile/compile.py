@@ -18,7 +18,7 @@ from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import Scene
 from haptex_compile.sources import SourceOptions, SourceResult, load_source
 from haptex_compile.surface import Surface
-from haptex_compile.tables import MAX_TABLE_NODES, Tables, build_tables, densify_speeds, halve_grid, table_grid
+from haptex_compile.tables import MAX_TABLE_NODES, Tables, build_tables, halve_grid, table_grid
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
@@ -222,9 +222,8 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
     cache: dict = {}
     grid = table_grid(surface, plan.spacing_mm)
     for attempt in range(MAX_REFINEMENTS + 1):
-        tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache)
-        if not plan.explicit_speeds:
-            tables = densify_speeds(tables, model)
+        tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache,
+                              speed_midpoints=not plan.explicit_speeds)
         stats = check_tables(surface, model, settings, tables, seed=seed + attempt)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),

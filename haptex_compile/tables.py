@@ -218,6 +218,7 @@ def build_tables(
     grid: TableGrid,
     workers: int = 2,
     cache: dict | None = None,
+    speed_midpoints: bool = False,
 ) -> Tables:
     """Compute the amplitude tables on `grid` for every direction and speed node.
 
@@ -235,6 +236,8 @@ def build_tables(
     cache : dict, optional
         Channel powers already computed, keyed by grid, direction and speed; filled in, so
         refining the nodes (or halving the grid, see :func:`halve_grid`) only computes new ones.
+    speed_midpoints : bool
+        Also store cubic midpoints between the speed nodes (:func:`speed_midpoints_of`).
     """
     directions = np.asarray(directions_deg, dtype=float)
     speeds = np.asarray(speeds_mm_s, dtype=float)
@@ -280,12 +283,15 @@ def build_tables(
     shape = (directions.size, speeds.size) + grid.shape
     ip = np.sqrt(powers[:, :, 0]).reshape(shape)
     inp = np.sqrt(powers[:, :, 1]).reshape(shape)
+    if speed_midpoints:
+        speeds, ip, inp = speed_midpoints_of(speeds, ip, inp)
     dec = model.decompose(ip, inp)
     return Tables(dec.a40, dec.a320, ip, inp, dec.out_of_gamut, directions, speeds, grid)
 
 
-def densify_speeds(tables: Tables, model: TwoColourModel) -> Tables:
-    """Tables with a node inserted between each pair of speed nodes, by cubic interpolation.
+def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Speed nodes and intensity tables [n_dir, n_speed, ...] with a node inserted between each
+    pair of speed nodes, by cubic interpolation.
 
     The player interpolates linearly in log-speed. Channel intensities vary smoothly with speed
     (not with direction, where a long window's strip swings across the texture), so a cubic
@@ -295,9 +301,9 @@ def densify_speeds(tables: Tables, model: TwoColourModel) -> Tables:
     """
     from scipy.interpolate import CubicSpline
 
-    speeds = tables.speed_mm_s
+    speeds = np.asarray(speeds_mm_s, dtype=float)
     if speeds.size < 4:
-        return tables
+        return (speeds, *intensities)
     log_s = np.log(speeds)
     mids = np.sqrt(speeds[:-1] * speeds[1:])
     new_speeds = np.empty(2 * speeds.size - 1)
@@ -310,9 +316,7 @@ def densify_speeds(tables: Tables, model: TwoColourModel) -> Tables:
         out[:, 1::2] = np.maximum(CubicSpline(log_s, x, axis=1)(np.log(mids)), 0.0)
         return out
 
-    ip, inp = dense(tables.intensity_p), dense(tables.intensity_np)
-    dec = model.decompose(ip, inp)
-    return Tables(dec.a40, dec.a320, ip, inp, dec.out_of_gamut, tables.direction_deg, new_speeds, tables.grid)
+    return (new_speeds, *(dense(x) for x in intensities))
 
 
 def mean_amplitudes(height_um: np.ndarray, pixel_size_um: float, *, periodic: bool = False,
