@@ -26,6 +26,7 @@ import numpy as np
 from haptex_compile.thresholds import ThresholdCurves, idealised_thresholds
 
 DEFAULT_SUMMATION_EXPONENT = 1.23
+DECOMPOSE_CHUNK = 1 << 16  # values per pass of the decomposition: temporaries stay in cache
 
 
 @dataclass(frozen=True)
@@ -96,34 +97,53 @@ class TwoColourModel:
     def decompose(self, intensity_p: np.ndarray, intensity_np: np.ndarray) -> "Decomposition":
         """Amplitudes (a40, a320) in µm that give the channel intensities (dimensionless, x threshold).
 
-        Vectorised over any shape; non-finite or negative intensities are treated as 0.
+        Vectorised over any shape; non-finite or negative intensities are treated as 0. Computed
+        in float32 when both inputs are float32 (the tables: their values are stored as float32
+        and the 2 x 2 system's condition number is far from costing the stored precision), else
+        in float64; large inputs go through in chunks so the temporaries stay in cache.
         """
-        n = self.summation_exponent
-        ip = np.nan_to_num(np.asarray(intensity_p, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
-        inp = np.nan_to_num(np.asarray(intensity_np, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
-        b = np.stack(np.broadcast_arrays(np.maximum(ip, 0.0) ** n, np.maximum(inp, 0.0) ** n))
+        ip, inp = np.broadcast_arrays(np.asarray(intensity_p), np.asarray(intensity_np))
+        dtype = np.float32 if ip.dtype == np.float32 and inp.dtype == np.float32 else np.float64
+        shape = ip.shape
+        ip, inp = ip.reshape(-1), inp.reshape(-1)
+        a40, a320, gamut = (np.empty(ip.size, dtype) for _ in range(3))
         m = self.matrix()
-        minv = np.linalg.inv(m)
-        u = np.einsum("kc,c...->k...", minv, b)
-        inside = np.all(u >= 0, axis=0)
-        # Nearest non-negative pair (relative error per channel) on each axis; keep the better one.
-        scale = b + 1e-12 * np.max(b, axis=0, keepdims=True) + 1e-300
-        best_u = np.zeros_like(u)
-        best_err = np.full(b.shape[1:], np.inf)
-        for k in range(2):
-            r = m[:, k].reshape((2,) + (1,) * (b.ndim - 1)) / scale  # model per unit u_k, relative
-            x = np.sum(r, axis=0) / np.sum(r * r, axis=0)
-            resid = np.sqrt(np.mean((r * x - 1.0) ** 2, axis=0))
-            take = resid < best_err
-            best_err = np.where(take, resid, best_err)
-            best_u[k] = np.where(take, x, best_u[k])
-            best_u[1 - k] = np.where(take, 0.0, best_u[1 - k])
-        zero = np.all(b <= 0, axis=0)
-        u = np.where(inside, u, best_u)
-        u = np.where(zero, 0.0, np.maximum(u, 0.0))
-        gamut = np.where(inside | zero, 0.0, best_err)
-        a = u ** (1.0 / n)
-        return Decomposition(a40=a[0], a320=a[1], out_of_gamut=gamut)
+        for lo in range(0, ip.size, DECOMPOSE_CHUNK):
+            hi = min(lo + DECOMPOSE_CHUNK, ip.size)
+            a40[lo:hi], a320[lo:hi], gamut[lo:hi] = self._decompose_flat(m, ip[lo:hi].astype(dtype, copy=False),
+                                                                         inp[lo:hi].astype(dtype, copy=False))
+        return Decomposition(a40=a40.reshape(shape), a320=a320.reshape(shape), out_of_gamut=gamut.reshape(shape))
+
+    def _decompose_flat(self, m: np.ndarray, ip: np.ndarray, inp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        dtype = ip.dtype.type
+        n = dtype(self.summation_exponent)
+        b = np.empty((2, ip.size), ip.dtype)
+        for row, x in zip(b, (ip, inp)):
+            np.maximum(np.where(np.isfinite(x), x, 0), 0, out=row)
+            np.power(row, n, out=row)
+        u = (np.linalg.inv(m).astype(ip.dtype) @ b)
+        gamut = np.zeros(ip.size, ip.dtype)
+        # Outside the gamut (a negative component; all-zero intensities give u = 0, inside):
+        # the nearest non-negative pair on either axis, in relative channel error.
+        out = np.flatnonzero((u[0] < 0) | (u[1] < 0))
+        if out.size:
+            bo = b[:, out].astype(float)
+            scale = bo + 1e-12 * bo.max(axis=0) + 1e-300
+            best_u = np.zeros((2, out.size))
+            best_err = np.full(out.size, np.inf)
+            for k in range(2):
+                r = m[:, k:k + 1] / scale  # model per unit u_k, relative
+                x = np.sum(r, axis=0) / np.sum(r * r, axis=0)
+                resid = np.sqrt(np.mean((r * x - 1.0) ** 2, axis=0))
+                take = resid < best_err
+                best_err = np.where(take, resid, best_err)
+                best_u[k] = np.where(take, x, best_u[k])
+                best_u[1 - k] = np.where(take, 0.0, best_u[1 - k])
+            u[:, out] = best_u
+            gamut[out] = best_err
+        np.maximum(u, 0, out=u)
+        np.power(u, dtype(1.0) / n, out=u)
+        return u[0], u[1], gamut
 
     def tone_intensities(self, freq_hz: np.ndarray | float, amplitude_um: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Channel intensities (I_p, I_np) of pure tones."""

@@ -118,7 +118,7 @@ def direction_powers(
     k_nyq_map = 0.5 / px
     centre = 0.5 * (kf.min() + kf.max())
     span = (kf.max() - kf.min()) * da
-    out = np.empty((speeds.size, 2, nodes_mm.shape[0]))
+    out = np.empty((speeds.size, 2, nodes_mm.shape[0]), np.float32)
     for group in _speed_groups(speeds, settings, span, px):
         need = span + 2 * line_margin_mm(speeds[group].max(), settings, px)
         n_g = min(n_cols, scipy.fft.next_fast_len(int(np.ceil(need / da)) + 2, real=True))

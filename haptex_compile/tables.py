@@ -275,14 +275,17 @@ def build_tables(
         else:
             powers = _direction_powers(surface, model, settings, nodes, d, missing)
         for s, pw in zip(missing, powers):
-            cache[key(target, d, s)] = pw.reshape((2,) + target.shape)
+            cache[key(target, d, s)] = pw.reshape((2,) + target.shape).astype(np.float32, copy=False)
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         list(pool.map(one, directions))
-    powers = np.stack([np.stack([lookup(d, s).reshape(2, -1) for s in speeds]) for d in directions])  # [nd, ns, 2, n]
     shape = (directions.size, speeds.size) + grid.shape
-    ip = np.sqrt(powers[:, :, 0]).reshape(shape)
-    inp = np.sqrt(powers[:, :, 1]).reshape(shape)
+    ip, inp = np.empty(shape, np.float32), np.empty(shape, np.float32)
+    for a, d in enumerate(directions):
+        for b, s in enumerate(speeds):
+            power = lookup(d, s)
+            np.sqrt(power[0], out=ip[a, b])
+            np.sqrt(power[1], out=inp[a, b])
     if speed_midpoints:
         speeds, ip, inp = speed_midpoints_of(speeds, ip, inp)
     dec = model.decompose(ip, inp)
@@ -309,11 +312,18 @@ def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tup
     new_speeds = np.empty(2 * speeds.size - 1)
     new_speeds[0::2], new_speeds[1::2] = speeds, mids
 
+    # The spline is linear in the data: its values at the midpoints are a fixed matrix times the
+    # node values, applied per direction as one matrix product.
+    weights = CubicSpline(log_s, np.eye(speeds.size), axis=0)(np.log(mids))  # [n_mid, n_speed]
+
     def dense(x: np.ndarray) -> np.ndarray:
-        out = np.empty(x.shape[:1] + (new_speeds.size,) + x.shape[2:])
+        out = np.empty(x.shape[:1] + (new_speeds.size,) + x.shape[2:], x.dtype)
         out[:, 0::2] = x
-        # Intensities are non-negative; a cubic overshoot below zero is clamped.
-        out[:, 1::2] = np.maximum(CubicSpline(log_s, x, axis=1)(np.log(mids)), 0.0)
+        w = weights.astype(x.dtype)
+        for a in range(x.shape[0]):
+            mid = out[a, 1::2].reshape(mids.size, -1)
+            np.matmul(w, x[a].reshape(speeds.size, -1), out=mid)
+            np.maximum(mid, 0, out=mid)  # intensities are non-negative: a cubic undershoot is clamped
         return out
 
     return (new_speeds, *(dense(x) for x in intensities))

@@ -80,12 +80,18 @@ class ThresholdCurves:
         # ramps at the inner nodes; each ramp is rounded by a Gaussian of SMOOTHING_HZ (in
         # octaves at that node) so the weighting filters have short impulse responses.
         db = y[0] + slopes[0] * (x - x_nodes[0])
-        for xj, jump in zip(x_nodes[1:-1], np.diff(slopes)):
-            if jump == 0.0:
-                continue
-            sigma = float(np.clip(SMOOTHING_HZ / (2.0**xj * np.log(2.0)), 0.005, 0.3))
-            r = (x - xj) / sigma
-            db = db + jump * sigma * (r * _norm_cdf(r) + np.exp(-0.5 * r * r) / np.sqrt(2 * np.pi))
+        jumps = np.diff(slopes)
+        inner = x_nodes[1:-1][jumps != 0.0]
+        jumps = jumps[jumps != 0.0]
+        if inner.size:
+            sigma = np.clip(SMOOTHING_HZ / (2.0**inner * np.log(2.0)), 0.005, 0.3)
+            r = (x.reshape(-1, 1) - inner) / sigma  # [n, nodes]
+            # A rounded ramp r Phi(r) + phi(r); beyond 9 sigma it is the bare ramp to double precision.
+            ramp = np.maximum(r, 0.0)
+            near = np.abs(r) < 9.0
+            rn = r[near]
+            ramp[near] = rn * _norm_cdf(rn) + np.exp(-0.5 * rn * rn) / np.sqrt(2 * np.pi)
+            db = db + (ramp @ (jumps * sigma)).reshape(x.shape)
         with np.errstate(over="ignore"):
             out = np.power(10.0, db / 20.0)
         return np.where(positive, out, np.inf)
