@@ -37,6 +37,7 @@ import numpy as np
 
 from haptex_compile import __version__
 from haptex_compile.colours import TwoColourModel
+from haptex_compile.file_modes import new_file_mode
 from haptex_compile.frame_analysis import ANALYSIS_RATE_HZ, AnalysisSettings
 from haptex_compile.scene import Scene
 from haptex_compile.surface import Surface
@@ -82,12 +83,29 @@ def round_mantissa(values: np.ndarray, bits: int = TABLE_MANTISSA_BITS) -> np.nd
     return rounded.view(np.float32)
 
 
-def _dataset(group: h5py.Group, name: str, data: np.ndarray, compress: bool = False) -> h5py.Dataset:
+def _dataset(group: h5py.Group, name: str, data: np.ndarray, compress: bool = False,
+             level: int = 4, chunks: tuple[int, ...] | bool = True) -> h5py.Dataset:
     data = np.ascontiguousarray(data)
     kwargs: dict[str, Any] = {"track_times": False}
     if compress and data.size > 1024:
-        kwargs.update(compression="gzip", compression_opts=4, shuffle=True, chunks=True)
+        kwargs.update(compression="gzip", compression_opts=level, shuffle=True, chunks=chunks)
     return group.create_dataset(name, data=data, **kwargs)
+
+
+TABLE_CHUNK_BYTES = 1 << 20
+# gzip level of the tables: their rounded mantissas compress as well at level 1 as at 4 when a
+# chunk holds whole node grids (measured on the cotton-poplin tables: 23.1 MB in 0.59 s
+# against 24.9 MB in 0.76 s with level 4 and h5py's automatic chunks).
+TABLE_GZIP_LEVEL = 1
+
+
+def _table_chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """Chunks of whole node grids (for one direction, as many speeds as fit in about 1 MiB)."""
+    nd, ns, nj, ni = shape
+    grid_bytes = 4 * nj * ni
+    if grid_bytes <= TABLE_CHUNK_BYTES:
+        return (1, max(1, min(ns, TABLE_CHUNK_BYTES // grid_bytes)), nj, ni)
+    return (1, 1, max(1, min(nj, TABLE_CHUNK_BYTES // (4 * ni))), ni)
 
 
 def write_asset(path: str | Path, content: AssetContent) -> None:
@@ -99,6 +117,7 @@ def write_asset(path: str | Path, content: AssetContent) -> None:
     try:
         with h5py.File(tmp, "w", track_order=False) as f:
             _fill(f, content)
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -160,11 +179,12 @@ def _fill(f: h5py.File, c: AssetContent) -> None:
 
     t = f.create_group("tables")
     tab = c.tables
-    _dataset(t, "a40", round_mantissa(tab.a40), compress=True)
-    _dataset(t, "a320", round_mantissa(tab.a320), compress=True)
+    table_kw = {"compress": True, "level": TABLE_GZIP_LEVEL, "chunks": _table_chunks(tab.a40.shape)}
+    _dataset(t, "a40", round_mantissa(tab.a40), **table_kw)
+    _dataset(t, "a320", round_mantissa(tab.a320), **table_kw)
     _dataset(t, "direction_deg", np.asarray(tab.direction_deg, dtype=np.float64))
     _dataset(t, "speed_mm_s", np.asarray(tab.speed_mm_s, dtype=np.float64))
-    _dataset(t, "out_of_gamut", round_mantissa(tab.out_of_gamut), compress=True)
+    _dataset(t, "out_of_gamut", round_mantissa(tab.out_of_gamut), **table_kw)
     t.attrs["frame_ms"] = float(c.settings.frame_ms)
     t.attrs["periodic"] = bool(tab.grid.periodic)
     t.attrs["origin_mm"] = np.asarray(tab.grid.origin_mm, dtype=np.float64)

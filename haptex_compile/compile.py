@@ -28,6 +28,7 @@ CHECK_WORKERS = 2
 # was not met.
 MAX_TABLE_VALUES = 16_000_000
 MAX_REFINEMENTS = 3
+MAX_HALVINGS_PER_ROUND = 2
 
 
 @dataclass
@@ -193,21 +194,26 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
 
 
 def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
-    """Which node axes to halve so that the predicted RMS error falls below the tolerance.
+    """Which node axes to halve, and how often, so that the predicted RMS error falls below the tolerance.
 
     The direction and speed families are also at random positions, so their errors include the
     position family's; subtracting it in quadrature leaves each axis's own share. Halving a step
-    divides linear-interpolation error by about 4 (by 3 here, to be safe); axes are taken, largest
-    share first, until the shares left add up (in quadrature) to 85 % of the tolerance.
+    divides linear-interpolation error by about 4 (by 3 here, to be safe); the axis with the
+    largest share is halved (at most ``MAX_HALVINGS_PER_ROUND`` times per round, so a first
+    round far off the mark does not cost a round per halving) until the shares left add up (in
+    quadrature) to 85 % of the tolerance. An axis appears in the list once per halving.
     """
     pos = stats["rms_rel_error_position"]
     share = {"position": pos,
              "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
              "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
     chosen: list[str] = []
-    for axis in sorted(share, key=lambda a: -share[a]):
-        if math.sqrt(sum(v * v for v in share.values())) <= 0.85 * tolerance or share[axis] < 0.25 * tolerance:
-            break  # met, or what is left is too small a share to be worth doubling an axis for
+    while math.sqrt(sum(v * v for v in share.values())) > 0.85 * tolerance:
+        # A share below a quarter of the tolerance is not worth doubling an axis for.
+        open_axes = [a for a in share if chosen.count(a) < MAX_HALVINGS_PER_ROUND and share[a] >= 0.25 * tolerance]
+        if not open_axes:
+            break
+        axis = max(open_axes, key=lambda a: share[a])
         chosen.append(axis)
         share[axis] /= 3.0
     return chosen or [max(share, key=lambda a: share[a])]

@@ -16,6 +16,7 @@ import numpy as np
 import OpenEXR
 
 from haptex_compile.errors import InputError
+from haptex_compile.file_modes import new_file_mode
 
 __all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]
 
@@ -27,18 +28,6 @@ _RESERVED = {"channels", "compression", "dataWindow", "displayWindow", "lineOrde
              "tiles", "version", "chunkCount", "view", "multiView", "maxSamplesPerPixel"}
 
 _STORED_DTYPE = {"HALF": np.float16, "FLOAT": np.float32, "UINT": np.uint32}
-
-
-def _umask() -> int:
-    """The process umask, read without changing it (os.umask would race with threads)."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as status:
-            for line in status:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    return 0o022
 
 
 def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
@@ -111,7 +100,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
             os.fsync(fd)  # the data is on disk before the name points at it
         finally:
             os.close(fd)
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, target)
     except BaseException as exc:
         try:

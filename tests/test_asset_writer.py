@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import h5py
 import numpy as np
+import pytest
 
-from haptex_compile.asset_writer import TABLE_MANTISSA_BITS, round_mantissa
+from haptex_compile.asset_writer import (TABLE_CHUNK_BYTES, TABLE_GZIP_LEVEL, TABLE_MANTISSA_BITS, _table_chunks,
+                                         round_mantissa)
 
 
 def test_rounding_error_is_bounded_by_half_a_unit_in_the_last_kept_bit():
@@ -22,6 +24,16 @@ def test_rounded_tables_compress_to_well_under_the_raw_size(tmp_path):
     for name, data in (("raw", field), ("rounded", round_mantissa(field))):
         path = tmp_path / f"{name}.h5"
         with h5py.File(path, "w") as f:
-            f.create_dataset("a", data=data, compression="gzip", compression_opts=4, shuffle=True, chunks=True, track_times=False)
+            f.create_dataset("a", data=data, compression="gzip", compression_opts=TABLE_GZIP_LEVEL, shuffle=True,
+                             chunks=_table_chunks(data.shape), track_times=False)
         sizes[name] = path.stat().st_size
     assert sizes["rounded"] < 0.75 * sizes["raw"]
+
+
+@pytest.mark.parametrize("shape", [(12, 29, 83, 83), (48, 29, 80, 80), (3, 5, 700, 700), (1, 1, 2, 2)])
+def test_table_chunks_hold_whole_node_grids_within_a_mebibyte(shape):
+    chunks = _table_chunks(shape)
+    assert all(1 <= c <= n for c, n in zip(chunks, shape))
+    assert 4 * np.prod(chunks) <= max(TABLE_CHUNK_BYTES, 4 * shape[3])
+    if 4 * shape[2] * shape[3] <= TABLE_CHUNK_BYTES:
+        assert chunks[2:] == shape[2:]  # a player reads whole grids

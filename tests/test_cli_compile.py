@@ -34,6 +34,13 @@ def asset(tmp_path_factory, scene_file) -> Path:
     return out
 
 
+def test_asset_gets_the_permissions_of_a_plainly_created_file(asset, tmp_path):
+    # Written through a temporary file (mkstemp makes it 0600): the rename must not keep that.
+    probe = tmp_path / "probe"
+    probe.touch()
+    assert (asset.stat().st_mode & 0o777) == (probe.stat().st_mode & 0o777)
+
+
 def test_compile_writes_a_valid_asset(asset):
     from haptex_compile.asset_validate import validate_asset
     from playback.asset import read_asset

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.compile import _as_player_tables, build_checked_tables, check_tables, relative_errors
+from haptex_compile.compile import (MAX_HALVINGS_PER_ROUND, _as_player_tables, axes_to_refine, build_checked_tables,
+                                   check_tables, relative_errors)
 from haptex_compile.fractal import brownian_surface
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
@@ -187,6 +188,36 @@ def test_build_checked_tables_meets_the_tolerance_and_stores_stats(brownian_tile
     # The stored figure is a measurement: a fresh sample of the same tables agrees with it.
     fresh = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=99)
     assert fresh["rms_rel_error"] <= 2.0 * max(stats["rms_rel_error"], 0.01)
+
+
+def _predicted_after(stats: dict, axes: list[str]) -> float:
+    """RMS error left after halving `axes`: each axis's own share (family minus position, in
+    quadrature) divided by 3 per halving, as the refinement plans."""
+    pos = stats["rms_rel_error_position"]
+    share = {"position": pos, **{a: np.sqrt(max(stats[f"rms_rel_error_{a}"] ** 2 - pos**2, 0.0)) for a in ("direction", "speed")}}
+    return float(np.sqrt(sum((v / 3.0 ** axes.count(a)) ** 2 for a, v in share.items())))
+
+
+@pytest.mark.parametrize("stats, expected", [
+    # a fine weave's first round (cotton poplin): direction share 5.8 %, position 1.6 %, speed none
+    ({"rms_rel_error_position": 0.016, "rms_rel_error_direction": 0.0603, "rms_rel_error_speed": 0.0142},
+     ["direction", "direction", "position"]),
+    # only speed is off: speed alone
+    ({"rms_rel_error_position": 0.004, "rms_rel_error_direction": 0.005, "rms_rel_error_speed": 0.03}, ["speed"]),
+])
+def test_refinement_halves_each_axis_as_often_as_its_share_needs(stats, expected):
+    axes = axes_to_refine(stats, 0.02)
+    assert axes == expected
+    assert _predicted_after(stats, axes) <= 0.85 * 0.02
+    assert _predicted_after(stats, axes[:-1]) > 0.85 * 0.02  # no halving more than needed
+
+
+def test_refinement_halves_an_axis_at_most_twice_per_round():
+    stats = {"rms_rel_error_position": 0.01, "rms_rel_error_direction": 0.5, "rms_rel_error_speed": 0.01}
+    axes = axes_to_refine(stats, 0.02)
+    assert axes.count("direction") == MAX_HALVINGS_PER_ROUND == 2
+    # position's share (1 %) is above a quarter of the tolerance: halved once; speed has no share of its own
+    assert axes == ["direction", "direction", "position"]
 
 
 def test_build_checked_tables_refines_until_the_tolerance_is_met():
