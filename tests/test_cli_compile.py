@@ -41,6 +41,32 @@ def test_asset_gets_the_permissions_of_a_plainly_created_file(asset, tmp_path):
     assert (asset.stat().st_mode & 0o777) == (probe.stat().st_mode & 0o777)
 
 
+def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path):
+    """``haptex-compile fabric.png --kes fabric.kes.json``: geometry from the photo, scale from SMD.
+
+    One factor scales the recovered relief (the photo fixes the warp/weft anisotropy), so the
+    simulated KES measurement of the stored heights must return the geometric mean of the
+    given SMDs.
+    """
+    import cv2
+
+    from haptex_compile.kes import simulate_kes_smd
+    from haptex_compile.synth_images import weave_image
+
+    photo = tmp_path / "weave.png"
+    cv2.imwrite(str(photo), np.round(255 * weave_image((192, 192), (16.0, 0.0), (0.0, 12.0), kind="plain")).astype(np.uint8))
+    kes = Path(__file__).resolve().parents[1] / "samples" / "kes" / "cotton_poplin.kes.json"
+    out = tmp_path / "weave.tact.h5"
+    r = run("haptex-compile", str(photo), "-o", str(out), "--pixel-size", "20um", "--kes", str(kes), "-q")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(out) as f:
+        height = f["surface/height"][()].astype(float)
+        report = f["report"].attrs["json"]
+    assert "cotton poplin" in str(report)
+    warp, weft = (simulate_kes_smd(height, 20.0, d, periodic=False) for d in ("warp", "weft"))
+    assert np.sqrt(warp * weft) == pytest.approx(np.sqrt(3.2 * 4.1), rel=0.05)
+
+
 def test_compile_writes_a_valid_asset(asset):
     from haptex_compile.asset_validate import validate_asset
     from playback.asset import read_asset
