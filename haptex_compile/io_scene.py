@@ -15,11 +15,8 @@ from haptex_compile.scene import Scene, scene_from_dict
 
 @lru_cache(maxsize=None)
 def load_schema(name: str) -> dict:
-    """A JSON Schema shipped in ``schemas/`` (repository) or the package's copy."""
-    repo = Path(__file__).resolve().parents[1] / "schemas" / name
-    if repo.is_file():
-        return json.loads(repo.read_text(encoding="utf-8"))
-    return json.loads(resources.files("haptex_compile").joinpath(f"schemas/{name}").read_text(encoding="utf-8"))
+    """A JSON Schema of ``schemas/`` (installed as the ``haptex_compile.schemas`` resources)."""
+    return json.loads(resources.files("haptex_compile.schemas").joinpath(name).read_text(encoding="utf-8"))
 
 
 def _where(error: jsonschema.ValidationError) -> str:

@@ -53,10 +53,6 @@ CSV_COLUMNS: dict[str, tuple[str, str | None]] = {
 _CSV_OPTIONAL = {"thickness_mm", "source"}
 _CSV_TEXT = {"fabric", "weave", "source"}
 
-_SCHEMA_PATHS = (
-    Path(__file__).resolve().parents[1] / "schemas" / "kes.schema.json",
-    Path(__file__).resolve().parent / "data" / "kes.schema.json",
-)
 
 
 @dataclass(frozen=True)
@@ -98,10 +94,9 @@ class KesData:
 @lru_cache(maxsize=1)
 def kes_schema() -> dict[str, Any]:
     """The JSON Schema of a ``.kes.json`` file (``schemas/kes.schema.json``)."""
-    for path in _SCHEMA_PATHS:
-        if path.is_file():
-            return json.loads(path.read_text(encoding="utf-8"))
-    raise FileNotFoundError(f"kes.schema.json not found in {', '.join(map(str, _SCHEMA_PATHS))}")
+    from haptex_compile.io_scene import load_schema
+
+    return load_schema("kes.schema.json")
 
 
 def _field_name(path: Any) -> str:
