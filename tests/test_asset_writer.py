@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from haptex_compile.asset_writer import (TABLE_CHUNK_BYTES, TABLE_GZIP_LEVEL, TABLE_MANTISSA_BITS, _table_chunks,
-                                         round_mantissa)
+                                         _table_dataset, round_mantissa)
 
 
 def test_rounding_error_is_bounded_by_half_a_unit_in_the_last_kept_bit():
@@ -37,3 +37,15 @@ def test_table_chunks_hold_whole_node_grids_within_a_mebibyte(shape):
     assert 4 * np.prod(chunks) <= max(TABLE_CHUNK_BYTES, 4 * shape[3])
     if 4 * shape[2] * shape[3] <= TABLE_CHUNK_BYTES:
         assert chunks[2:] == shape[2:]  # a player reads whole grids
+
+
+@pytest.mark.parametrize("shape", [(3, 57, 90, 80), (2, 3, 700, 530)])  # edge chunks along speed; along j
+def test_tables_compressed_outside_hdf5_read_back_exactly_through_its_filters(tmp_path, shape):
+    data = round_mantissa(np.random.default_rng(3).lognormal(0.0, 1.0, shape).astype(np.float32))
+    path = tmp_path / "t.h5"
+    with h5py.File(path, "w") as f:
+        _table_dataset(f, "a40", data)
+    with h5py.File(path) as f:
+        d = f["a40"]
+        assert d.compression == "gzip" and d.shuffle and d.chunks == _table_chunks(shape)
+        assert np.array_equal(d[()], data)
