@@ -74,6 +74,18 @@ def test_exact_surfaces_recover_hurst(hurst):
     assert abs(got.mean() - hurst) <= 0.02
 
 
+@pytest.mark.parametrize("p", [1.0, 2.0])
+@pytest.mark.parametrize("hurst", [0.2, 0.5, 0.9])
+def test_model_sd_far_offsets_in_cells_match_the_sum_over_every_offset(monkeypatch, hurst, p):
+    import haptex_compile.fractal_estimate as fe
+
+    valid = np.ones((400, 330), bool)
+    cells = fe._model_sd(valid, hurst, p, 2, [1, 0])
+    monkeypatch.setattr(fe, "NEAR_OFFSETS_PX", 10_000)  # every offset its own cell: the exact sum
+    exact = fe._model_sd(valid, hurst, p, 2, [1, 0])
+    assert cells == pytest.approx(exact, rel=1e-3)
+
+
 @pytest.mark.parametrize("hurst", [0.3, 0.7])
 def test_madogram_and_spectral_agree_on_exact_fields(hurst):
     z = _surface((256, 320), hurst, seed=7)
