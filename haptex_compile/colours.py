@@ -50,7 +50,8 @@ class Band:
         It is 0.63 at ``low_hz`` and 1 - 1e-7 at twice that.
         """
         f = np.abs(np.asarray(freq_hz, dtype=float))
-        low = -np.expm1(-((f / self.low_hz) ** 4))
+        with np.errstate(over="ignore"):  # (f / low)^4 = inf far above the band: the roll-off is 1 there
+            low = -np.expm1(-((f / self.low_hz) ** 4))
         t = np.clip((f - self.high_pass_hz) / (self.high_stop_hz - self.high_pass_hz), 0.0, 1.0)
         high = 0.5 * (1.0 + np.cos(np.pi * t))
         return low * high
