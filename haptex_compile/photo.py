@@ -12,6 +12,7 @@ report says why.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,7 +45,7 @@ def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_si
             kes = kes[0]
         unit = scale_relief(h, 1.0, kind="rms")
         factor = kes_relief_scale(kes, unit, pixel_size_um)
-        report["relief"] = f"scaled so the simulated KES SMD matches {options.kes_path} ({kes.fabric})"
+        report["relief"] = f"scaled so the simulated KES SMD matches {Path(options.kes_path).name} ({kes.fabric})"
         return unit * factor
     LOG.warning("%s: no height scale given; using the default relief of %g um RMS (set --relief-um or --kes)",
                 spec, DEFAULT_RELIEF_RMS_UM)
