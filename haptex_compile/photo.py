@@ -113,12 +113,39 @@ def photo_source(spec: str, options: SourceOptions) -> SourceResult:
     return photo_surface(grey, px, options, spec, report)
 
 
+def _tile_heights(tile, lattice, shape: tuple[int, int], pixel_size_um: float, light, method: str):
+    """Relative heights over an image of `shape` from the averaged tile, by shape from shading.
+
+    The tile is painted over a window that is exactly periodic (the lattice strained by at most
+    0.3 %, :func:`haptex_compile.tiles.periodic_window`) and solved as a periodic tile: better
+    posed than the whole image with free edges (no ramps shading cannot see) and a fraction of
+    its size. The heights are averaged over the window's lattice and painted back with the
+    photo's own. Lattices with no such window: the synthetic image is solved whole. Returns the
+    heights, the solver's result and what was solved (for the report).
+    """
+    from haptex_compile.lattice import Lattice
+    from haptex_compile.shading import shape_from_shading
+    from haptex_compile.tiles import average_tile, paint_tile, periodic_window
+
+    window = periodic_window(lattice.basis_px, max_px=max(256, min(1024, max(shape))))
+    if window is None:
+        sfs = shape_from_shading(tile.synthetic, pixel_size_um=pixel_size_um, light=light, method=method)
+        # Average the heights over the lattice as well, so the surface repeats exactly.
+        return average_tile(sfs.height, lattice).synthetic, sfs, f"the whole image ({shape[1]} x {shape[0]} px)"
+    basis_w, (rows, cols) = window
+    image = paint_tile(tile.tile, basis_w, (rows, cols))
+    sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=method, periodic=True)
+    cell = Lattice(True, basis_w[:, 0], basis_w[:, 1], 1.0, "periodic window")
+    h_tile = average_tile(sfs.height, cell, flatten_sigma_px=None, samples_per_px=1.0).tile
+    return paint_tile(h_tile, lattice.basis_px, shape), sfs, f"a periodic window of {cols} x {rows} px"
+
+
 def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions, spec: str,
                   report: dict[str, Any]) -> SourceResult:
     """Surface from a grey image in [0, 1] (no file I/O)."""
     from haptex_compile.fractal import brownian_surface, roughness_from_residual
     from haptex_compile.lattice import find_lattice
-    from haptex_compile.shading import Light, shape_from_shading
+    from haptex_compile.shading import Light
     from haptex_compile.tiles import average_tile, flatten_illumination
 
     ny, nx = grey.shape
@@ -139,13 +166,12 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},
                             source_image=grey)
     tile = average_tile(flat, lattice)
-    sfs = shape_from_shading(tile.synthetic, pixel_size_um=pixel_size_um, light=light, method=options.sfs)
+    height_rel, sfs, window = _tile_heights(tile, lattice, grey.shape, pixel_size_um, light, options.sfs)
     for w in sfs.warnings:
         LOG.warning("%s: %s", spec, w)
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
-                         "light_given": options.light is not None, "warnings": list(sfs.warnings)}
-    # Average the heights over the lattice as well, so the surface repeats exactly.
-    height_rel = average_tile(sfs.height, lattice).synthetic
+                         "light_given": options.light is not None, "warnings": list(sfs.warnings),
+                         "solved_on": window}
     height = relief_scale(options, spec, height_rel, pixel_size_um, report)
     t1, t2 = np.asarray(lattice.t1_px, float), np.asarray(lattice.t2_px, float)
     roughness = None

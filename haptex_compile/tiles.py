@@ -26,7 +26,7 @@ import numpy as np
 
 from haptex_compile.lattice import Lattice, _as_grey_array, _gaussian_blur
 
-__all__ = ["flatten_illumination", "TileAverage", "average_tile", "MAX_REPETITIONS"]
+__all__ = ["flatten_illumination", "TileAverage", "average_tile", "paint_tile", "periodic_window", "MAX_REPETITIONS"]
 
 _IQR_TO_SIGMA = 1.0 / 1.349  # inter-quartile range of a Gaussian is 1.349 sigma
 MAX_REPETITIONS = 256        # repetitions combined per tile sample at most (see module docstring)
@@ -271,6 +271,63 @@ def _paint(tile: np.ndarray, basis: np.ndarray, shape: tuple[int, int],
                            flags=interpolation | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_WRAP)
     return out
+
+
+def paint_tile(tile: np.ndarray, basis_px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Paint a periodic tile [n2, n1] (as in :class:`TileAverage`) over an image of `shape` (bicubic, float32).
+
+    `basis_px` is the 2x2 matrix with columns t1, t2 (px); tile sample [j, i] lands at
+    (i / n1) t1 + (j / n2) t2 from the centre of pixel (0, 0), modulo the lattice.
+    """
+    return _paint(np.asarray(tile, dtype=np.float32), np.asarray(basis_px, dtype=float), shape, cv2.INTER_CUBIC)
+
+
+# An array-periodic window may strain the lattice by at most MAX_WINDOW_STRAIN (relative change of
+# the basis; 3e-3 moves a 20 px cell's samples by 0.06 px, invisible to shading); the smallest
+# side whose lattice vector strains it by WINDOW_STRAIN or less is taken.
+MAX_WINDOW_STRAIN = 3e-3
+WINDOW_STRAIN = 1e-3
+
+
+def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
+                    ) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """A window shape (rows, cols) and a slightly strained lattice for which the window is periodic.
+
+    Finds integer lattice vectors close to (W, 0) and (0, H) for W, H in [min_px, max_px] (the
+    smallest side within ``WINDOW_STRAIN``, else the least strain) and returns the basis B' with
+    ``B' K = diag(W, H)`` (K: those integer vectors): painting a tile
+    with B' over a rows x cols = H x W image gives an exactly array-periodic image of the same
+    texture, which array-periodic solvers (shape from shading) take as a tile. None when no
+    window strains the lattice by less than ``MAX_WINDOW_STRAIN``.
+
+    Parameters
+    ----------
+    basis_px : ndarray [2, 2]
+        Columns t1, t2 in px.
+    min_px, max_px : int
+        Range of the window's sides.
+    """
+    basis = np.asarray(basis_px, dtype=float)
+    inv = np.linalg.inv(basis)
+    sides = np.arange(min_px, max_px + 1)
+    columns = []
+    for axis in (0, 1):
+        target = np.zeros((2, sides.size))
+        target[axis] = sides
+        k = np.rint(inv @ target)  # integer lattice coordinates nearest to (side, 0) or (0, side)
+        miss = np.linalg.norm(basis @ k - target, axis=0)
+        miss[~np.any(k != 0, axis=0)] = np.inf
+        close = np.flatnonzero(miss <= WINDOW_STRAIN * sides)
+        best = int(close[0]) if close.size else int(np.argmin(miss / sides))  # else the least strain
+        columns.append((int(sides[best]), k[:, best]))
+    (w, k_a), (h, k_b) = columns
+    kmat = np.column_stack([k_a, k_b])
+    if abs(np.linalg.det(kmat)) < 0.5:
+        return None
+    strained = np.diag([float(w), float(h)]) @ np.linalg.inv(kmat)
+    if np.linalg.norm(strained - basis) > MAX_WINDOW_STRAIN * np.linalg.norm(basis):
+        return None
+    return strained, (h, w)
 
 
 def average_tile(image: np.ndarray, lattice: Lattice, *, combine: str = "median",
