@@ -13,17 +13,10 @@ import pytest
 from haptex_compile.photo import photo_surface
 from haptex_compile.shading import Light, normalised_height_error, render_lambertian
 from haptex_compile.sources import SourceOptions
+from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tiles import MAX_WINDOW_STRAIN, paint_tile, periodic_window
 
 PIXEL_UM = 20.0
-
-
-def _cell(n: int = 64) -> np.ndarray:
-    """A smooth, asymmetric relief over one lattice cell (tile samples [j, i] at (i / n, j / n))."""
-    u, v = np.meshgrid(np.arange(n) / n, np.arange(n) / n)
-    return (0.6 * np.cos(2 * np.pi * u) * np.cos(2 * np.pi * v) + 0.3 * np.cos(4 * np.pi * u)
-            + 0.25 * np.cos(4 * np.pi * v) + 0.2 * np.sin(2 * np.pi * (u + v)))
-
 
 LATTICES = [((18.3, 3.1), (-4.2, 15.7)), ((21.0, 0.0), (0.0, 16.5)), ((14.2, -5.3), (6.1, 19.8))]
 
@@ -35,7 +28,8 @@ def test_periodic_window_is_exactly_periodic_and_barely_strained(t1, t2):
     k = np.linalg.solve(strained, np.diag([float(cols), float(rows)]))
     assert np.allclose(k, np.rint(k), atol=1e-9)  # the window's sides are lattice vectors
     assert np.linalg.norm(strained - basis) <= MAX_WINDOW_STRAIN * np.linalg.norm(basis)
-    tile = _cell(16)
+    u = np.arange(16) / 16
+    tile = np.cos(2 * np.pi * u)[None, :] + np.sin(2 * np.pi * u)[:, None]  # smooth: OpenCV warps at 1/32 px
     once = paint_tile(tile, strained, (rows, cols))
     twice = paint_tile(tile, strained, (2 * rows, 2 * cols))
     assert np.allclose(twice[rows:, cols:], once, atol=1e-4) and np.allclose(twice[:rows, cols:], once, atol=1e-4)
@@ -43,8 +37,7 @@ def test_periodic_window_is_exactly_periodic_and_barely_strained(t1, t2):
 
 @pytest.mark.parametrize("t1, t2, light", [(t1, t2, light) for (t1, t2), light in zip(LATTICES, [(40, 60), (30, 200), (55, 300)])])
 def test_photo_of_a_periodic_relief_gives_back_the_relief(t1, t2, light):
-    basis = np.column_stack([t1, t2]).astype(float)
-    truth_um = 12.0 * paint_tile(_cell(), basis, (768, 768)).astype(float)
+    truth_um = lattice_relief((768, 768), t1, t2, amplitude_um=12.0)
     image = render_lambertian(truth_um, PIXEL_UM, Light(*light), 0.8)
     options = SourceOptions(light=light, roughness="none", relief_um=float(np.std(truth_um)))
     result = photo_surface(image, PIXEL_UM, options, "rendered", {})
