@@ -31,7 +31,7 @@ if str(BENCH_DIR) not in sys.path:  # plain-script imports (bench modules have n
 import report_utils as ru  # noqa: E402
 
 # The sections, in the order the report shows them; others follow alphabetically.
-EXPECTED = ("perception", "tables", "playback", "lattice", "shading", "fractal", "kes", "io")
+EXPECTED = ("perception", "tables", "playback", "lattice", "shading", "photo", "fractal", "kes", "io")
 TIMEOUT_S = {"quick": 240.0, "full": 600.0}
 
 
