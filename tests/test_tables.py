@@ -13,7 +13,7 @@ import pytest
 
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.compile import (MAX_HALVINGS_PER_ROUND, _as_player_tables, axes_to_refine, build_checked_tables,
-                                   check_tables, relative_errors)
+                                   check_tables, relative_errors, rms_upper_bound)
 from haptex_compile.fractal import brownian_surface
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
@@ -188,6 +188,16 @@ def test_build_checked_tables_meets_the_tolerance_and_stores_stats(brownian_tile
     # The stored figure is a measurement: a fresh sample of the same tables agrees with it.
     fresh = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=99)
     assert fresh["rms_rel_error"] <= 2.0 * max(stats["rms_rel_error"], 0.01)
+
+
+def test_rms_upper_bound_covers_the_true_rms_95_percent_of_the_time():
+    # 64 half-normal errors of RMS 1 %: the true RMS is below the bound in 95 % of samples
+    # (binomial SD over 400 samples: 1.1 %).
+    rng = np.random.default_rng(1)
+    covered = [rms_upper_bound(np.abs(rng.normal(0.0, 0.01, 64)), seed=i) >= 0.01 for i in range(400)]
+    assert 0.92 <= np.mean(covered) <= 0.98
+    e = np.abs(rng.normal(0.0, 0.01, 64))
+    assert rms_upper_bound(e) >= np.sqrt(np.mean(e**2))
 
 
 def _predicted_after(stats: dict, axes: list[str]) -> float:
