@@ -16,12 +16,14 @@ Layout (public contract; ``schemas/asset.schema.json``; read by :mod:`playback.a
   ``TABLE_MANTISSA_BITS`` significant bits (relative rounding at most 1.2e-4, far below any
   table tolerance) so that shuffle + gzip store them in about half the space;
   ``/tables/direction_deg``, ``/tables/speed_mm_s``; attrs ``frame_ms``, ``periodic``,
-  ``origin_mm``, ``grid_basis_mm``, ``grid_spacing_mm``, error statistics;
+  ``origin_mm``, ``grid_basis_mm``, ``grid_spacing_mm``, error statistics (``rms_rel_error`` and its
+  95 % upper bound ``rms_rel_error_upper95``, ``max_rel_error``, per-family RMS, ``tolerance``);
 * ``/scene`` attrs ``text``, ``resolved`` (JSON); dataset ``contactors_mm`` [n, 2];
 * ``/report`` attr ``json``: the compile report (warnings, decisions, measured errors).
 
 Writes are atomic (temporary file in the same folder, then rename) and deterministic
-(no timestamps: ``track_times=False``; fixed compression settings).
+(no timestamps: ``track_times=False``; fixed compression settings; table chunks are deflated on
+two threads and written raw, see :func:`_table_dataset`).
 """
 from __future__ import annotations
 
