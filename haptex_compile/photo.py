@@ -113,40 +113,14 @@ def photo_source(spec: str, options: SourceOptions) -> SourceResult:
     return photo_surface(grey, px, options, spec, report)
 
 
-def _tile_heights(tile, lattice, shape: tuple[int, int], pixel_size_um: float, light, method: str):
-    """Relative heights over an image of `shape` from the averaged tile, by shape from shading.
-
-    The tile is painted over a window that is exactly periodic (the lattice strained by at most
-    0.3 %, :func:`haptex_compile.tiles.periodic_window`) and solved as a periodic tile: better
-    posed than the whole image with free edges (no ramps shading cannot see) and a fraction of
-    its size. The heights are averaged over the window's lattice and painted back with the
-    photo's own. Lattices with no such window: the synthetic image is solved whole. Returns the
-    heights, the solver's result and what was solved (for the report).
-    """
-    from haptex_compile.lattice import Lattice
-    from haptex_compile.shading import shape_from_shading
-    from haptex_compile.tiles import average_tile, paint_tile, periodic_window
-
-    window = periodic_window(lattice.basis_px, max_px=max(256, min(1024, max(shape))))
-    if window is None:
-        sfs = shape_from_shading(tile.synthetic, pixel_size_um=pixel_size_um, light=light, method=method)
-        # Average the heights over the lattice as well, so the surface repeats exactly.
-        return average_tile(sfs.height, lattice).synthetic, sfs, f"the whole image ({shape[1]} x {shape[0]} px)"
-    basis_w, (rows, cols) = window
-    image = paint_tile(tile.tile, basis_w, (rows, cols))
-    sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=method, periodic=True)
-    cell = Lattice(True, basis_w[:, 0], basis_w[:, 1], 1.0, "periodic window")
-    h_tile = average_tile(sfs.height, cell, flatten_sigma_px=None, samples_per_px=1.0).tile
-    return paint_tile(h_tile, lattice.basis_px, shape), sfs, f"a periodic window of {cols} x {rows} px"
-
-
 def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions, spec: str,
                   report: dict[str, Any]) -> SourceResult:
     """Surface from a grey image in [0, 1] (no file I/O)."""
     from haptex_compile.fractal import brownian_surface, roughness_from_residual
-    from haptex_compile.lattice import find_lattice
-    from haptex_compile.shading import Light
-    from haptex_compile.tiles import average_tile, flatten_illumination
+    from haptex_compile.lattice import Lattice, find_lattice
+    from haptex_compile.shading import Light, shape_from_shading
+    from haptex_compile.surface import periodic_surface_from_tile
+    from haptex_compile.tiles import average_tile, flatten_illumination, paint_tile, periodic_window
 
     ny, nx = grey.shape
     flat = flatten_illumination(grey, sigma_px=max(ny, nx) / 8.0)
@@ -166,30 +140,77 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},
                             source_image=grey)
     tile = average_tile(flat, lattice)
-    height_rel, sfs, window = _tile_heights(tile, lattice, grey.shape, pixel_size_um, light, options.sfs)
-    for w in sfs.warnings:
-        LOG.warning("%s: %s", spec, w)
-    report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
-                         "light_given": options.light is not None, "warnings": list(sfs.warnings),
-                         "solved_on": window}
-    height = relief_scale(options, spec, height_rel, pixel_size_um, report)
-    t1, t2 = np.asarray(lattice.t1_px, float), np.asarray(lattice.t2_px, float)
     roughness = None
     if options.roughness != "none":
         est, rms_img = roughness_from_residual(flat - tile.synthetic, pixel_size_um=pixel_size_um)
-        pattern_rms = float(np.std(tile.synthetic)) or 1.0
         # Same grey-to-height ratio as the pattern (shading is linear in slope to first order).
-        rms_um = float(np.std(height)) * float(rms_img) / pattern_rms
+        rough_ratio = float(rms_img) / (float(np.std(tile.synthetic)) or 1.0)
         hurst = float(np.clip(est.hurst, 0.02, 0.98))
-        rough, t1, t2 = periodic_roughness(height.shape, t1, t2, hurst, rms_um, pixel_size_um, options.seed)
+        roughness = {"hurst": hurst, "dimension": 3.0 - hurst, "hurst_ci": [float(est.ci_low), float(est.ci_high)]}
+    # The surface is a window that is exactly periodic on the pixel array (the lattice strained by
+    # at most 0.3 %), about ROUGHNESS_CELL_MM or more on a side: shading solves it as a periodic
+    # tile (better posed than a whole photo with free edges, and smaller), the roughness repeats
+    # on it, and the tables take their fast path. Lattices with no such window: the whole image,
+    # with the roughness on a super-cell of the lattice.
+    window = periodic_window(lattice.basis_px, min_px=int(np.ceil(ROUGHNESS_CELL_MM * 1000.0 / pixel_size_um)),
+                             max_px=max(1024, int(np.ceil(ROUGHNESS_CELL_MM * 2000.0 / pixel_size_um))))
+    if window is not None:
+        basis, (rows, cols) = window
+        image = paint_tile(tile.tile, basis, (rows, cols))
+        solved_on = f"a periodic window of {cols} x {rows} px"
+    else:
+        basis, (rows, cols), image = lattice.basis_px, (ny, nx), tile.synthetic
+        solved_on = f"the whole image ({nx} x {ny} px)"
+    sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None)
+    for w in sfs.warnings:
+        LOG.warning("%s: %s", spec, w)
+    report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
+                         "light_given": options.light is not None, "warnings": list(sfs.warnings), "solved_on": solved_on}
+    # Average the heights over the lattice as well, so the surface repeats exactly.
+    cell = Lattice(True, basis[:, 0], basis[:, 1], 1.0, "surface lattice")
+    height_rel = paint_tile(average_tile(sfs.height, cell, flatten_sigma_px=None).tile, basis, (rows, cols))
+    height = relief_scale(options, spec, height_rel, pixel_size_um, report)
+    if roughness is not None:
+        roughness["rms_um"] = float(np.std(height)) * rough_ratio
+        if window is not None:
+            rough = brownian_surface((rows, cols), roughness["hurst"], pixel_size_um=pixel_size_um, rms_um=roughness["rms_um"],
+                                     seed=options.seed, periodic=True)
+            roughness["note"] = "Brownian roughness from the photo's residual, periodic on the surface's window"
+        else:
+            rough, t1, t2 = periodic_roughness(height.shape, basis[:, 0], basis[:, 1], roughness["hurst"], roughness["rms_um"],
+                                               pixel_size_um, options.seed)
+            basis = np.column_stack([t1, t2])
+            roughness["note"] = "Brownian roughness from the photo's residual, periodic on a super-cell of the lattice"
         height = height + rough
-        roughness = {"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms_um,
-                     "hurst_ci": [float(est.ci_low), float(est.ci_high)],
-                     "note": "Brownian roughness from the photo's residual, periodic on a super-cell of the lattice"}
         report["roughness"] = roughness
-    # Reference cell near the image centre, so every sample it needs is inside the image.
-    centre = np.array([nx, ny], dtype=float) / 2.0 - (t1 + t2) / 2.0
-    surface = Surface(height, pixel_size_um, True, t1, t2, np.floor(centre))
+    if window is not None:
+        surface = periodic_surface_from_tile(height, pixel_size_um)
+        report["surface"] = {"window_px": [cols, rows], "window_t1_px": basis[:, 0].tolist(), "window_t2_px": basis[:, 1].tolist(),
+                             "note": "the surface is this window, periodic on its pixel array; the lattice strained to fit it"}
+    else:
+        # Reference cell near the image centre, so every sample it needs is inside the image.
+        centre = np.array([nx, ny], dtype=float) / 2.0 - (basis[:, 0] + basis[:, 1]) / 2.0
+        surface = Surface(height, pixel_size_um, True, basis[:, 0], basis[:, 1], np.floor(centre))
     lat = {"t1_px": np.asarray(lattice.t1_px, float), "t2_px": np.asarray(lattice.t2_px, float),
            "confidence": float(lattice.confidence)}
     return SourceResult(surface, "photo", spec, report, lattice=lat, roughness=roughness, source_image=grey)
+
+
+def heights_at_image_px(result: SourceResult, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+    """Heights (µm) of a photo's surface at positions given in the photo's pixels.
+
+    When the surface is a periodic window (``report["surface"]["window_px"]``), its lattice is the
+    photo's strained to fit the window: photo pixel x lies at window pixel ``B' B^-1 x`` (B the
+    photo's lattice, B' the window's). Otherwise the surface is on the photo's own grid.
+    """
+    from haptex_compile.surface import sample_height
+
+    x = np.asarray(x_px, dtype=float)
+    y = np.asarray(y_px, dtype=float)
+    window = result.report.get("surface")
+    if isinstance(window, dict) and "window_px" in window:
+        found = np.column_stack([result.lattice["t1_px"], result.lattice["t2_px"]])
+        to_window = np.column_stack([window["window_t1_px"], window["window_t2_px"]]) @ np.linalg.inv(found)
+        x, y = to_window[0, 0] * x + to_window[0, 1] * y, to_window[1, 0] * x + to_window[1, 1] * y
+    px_mm = result.surface.pixel_size_mm
+    return sample_height(result.surface, x * px_mm, y * px_mm)
