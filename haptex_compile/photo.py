@@ -166,9 +166,11 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         LOG.warning("%s: %s", spec, w)
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
                          "light_given": options.light is not None, "warnings": list(sfs.warnings), "solved_on": solved_on}
-    # Average the heights over the lattice as well, so the surface repeats exactly.
+    # Average the heights over the lattice as well, so the surface repeats exactly (a whole
+    # image's solve has slow ramps from its free edges: flattened out first, as for the photo).
     cell = Lattice(True, basis[:, 0], basis[:, 1], 1.0, "surface lattice")
-    height_rel = paint_tile(average_tile(sfs.height, cell, flatten_sigma_px=None).tile, basis, (rows, cols))
+    averaged = average_tile(sfs.height, cell, flatten_sigma_px=None if window is not None else "auto")
+    height_rel = paint_tile(averaged.tile, basis, (rows, cols))
     height = relief_scale(options, spec, height_rel, pixel_size_um, report)
     if roughness is not None:
         roughness["rms_um"] = float(np.std(height)) * rough_ratio
