@@ -321,9 +321,9 @@ def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tup
         out[:, 0::2] = x
         w = weights.astype(x.dtype)
         for a in range(x.shape[0]):
-            mid = out[a, 1::2].reshape(mids.size, -1)
-            np.matmul(w, x[a].reshape(speeds.size, -1), out=mid)
-            np.maximum(mid, 0, out=mid)  # intensities are non-negative: a cubic undershoot is clamped
+            mid = w @ x[a].reshape(speeds.size, -1)
+            # intensities are non-negative: a cubic undershoot is clamped
+            out[a, 1::2] = np.maximum(mid, 0, out=mid).reshape(out[a, 1::2].shape)
         return out
 
     return (new_speeds, *(dense(x) for x in intensities))

@@ -19,7 +19,7 @@ from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import default_scene
 from haptex_compile.surface import Surface, periodic_surface_from_tile, sample_height
-from haptex_compile.tables import Tables, build_tables, table_grid
+from haptex_compile.tables import Tables, build_tables, speed_midpoints_of, table_grid
 
 MODEL = TwoColourModel()
 SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
@@ -276,3 +276,16 @@ def test_sheared_fast_path_agrees_with_rotated_lines_and_the_reference(brownian_
     fast_err, slow_err = np.array(fast_err), np.array(slow_err)
     assert np.sqrt(np.mean(fast_err**2)) < 0.01 and fast_err.max() < 0.04
     assert np.sqrt(np.mean(slow_err**2)) < 0.015
+
+
+def test_speed_midpoints_are_the_log_speed_cubic_spline_through_the_nodes():
+    from scipy.interpolate import CubicSpline
+
+    speeds = np.geomspace(10.0, 200.0, 9)
+    x = np.random.default_rng(0).random((3, 9, 5, 4)).astype(np.float32) - 0.1  # some negative: clamped
+    new_speeds, dense = speed_midpoints_of(speeds, x)
+    mids = np.sqrt(speeds[:-1] * speeds[1:])
+    assert np.allclose(new_speeds[0::2], speeds) and np.allclose(new_speeds[1::2], mids)
+    assert np.array_equal(dense[:, 0::2], x)
+    spline = CubicSpline(np.log(speeds), x.astype(float), axis=1)(np.log(mids))
+    assert np.allclose(dense[:, 1::2], np.maximum(spline, 0.0), atol=1e-6)
