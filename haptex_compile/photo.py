@@ -5,6 +5,12 @@ into a clean synthetic image, and recover heights by shape from shading. Shading
 not size: the height scale comes from ``--relief-um`` (RMS, or peak-to-valley with
 ``--relief-kind pv``), from Kawabata SMD (``--kes``), or from the stated default with a warning.
 
+The surface of a periodic photo is a window of the averaged tile that repeats exactly on its
+pixel array (sides that are lattice vectors, the lattice strained by at most 0.3 %,
+:func:`haptex_compile.tiles.periodic_window`): shading solves it as a tile, the synthetic
+roughness repeats on it, and the tables take their fast path. :func:`heights_at_image_px`
+reads it at the photo's pixels.
+
 A photo without a credible lattice is not periodic: its surface is a Brownian surface with the
 fractal dimension and RMS estimated from the photo (issue: fractal roughness), and the compile
 report says why.

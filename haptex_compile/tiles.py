@@ -295,10 +295,10 @@ def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
 
     Finds integer lattice vectors close to (W, 0) and (0, H) for W, H in [min_px, max_px] (the
     smallest side within ``WINDOW_STRAIN``, else the least strain) and returns the basis B' with
-    ``B' K = diag(W, H)`` (K: those integer vectors): painting a tile
-    with B' over a rows x cols = H x W image gives an exactly array-periodic image of the same
-    texture, which array-periodic solvers (shape from shading) take as a tile. None when no
-    window strains the lattice by less than ``MAX_WINDOW_STRAIN``.
+    ``B' K = diag(W, H)`` (K: those integer vectors). Painting a tile with B' over a rows x cols
+    = H x W image gives an exactly array-periodic image of the same texture, which array-periodic
+    solvers (shape from shading, the tables' fast path) take as a tile. None when no window
+    strains the lattice by less than ``MAX_WINDOW_STRAIN``.
 
     Parameters
     ----------
