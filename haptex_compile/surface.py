@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
+from scipy import ndimage
 
 
 @dataclass(frozen=True)
@@ -155,14 +156,6 @@ def pixel_coordinates(surface: "Surface", u_mm: np.ndarray, v_mm: np.ndarray) ->
     return x, y
 
 
-def _index(i: np.ndarray, n: int, wrap: bool) -> np.ndarray:
-    if wrap:
-        return np.mod(i, n)
-    period = 2 * (n - 1)
-    i = np.mod(i, period)
-    return np.where(i >= n, period - i, i)
-
-
 def _bspline_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     t2 = t * t
     t3 = t2 * t
@@ -184,19 +177,9 @@ def sample_height(surface: Surface, u_mm: np.ndarray, v_mm: np.ndarray) -> np.nd
         Heights in µm, float64, same shape as the broadcast inputs.
     """
     c = spline_coefficients(surface)
-    ny, nx = c.shape
-    wrap = _wraps(surface)
     x, y = pixel_coordinates(surface, u_mm, v_mm)
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    wx = _bspline_weights(x - x0)
-    wy = _bspline_weights(y - y0)
-    x0 = x0.astype(np.int64)
-    y0 = y0.astype(np.int64)
-    xs = [_index(x0 + k, nx, wrap) for k in (-1, 0, 1, 2)]
-    out = np.zeros(x.shape)
-    for m in range(4):
-        row = _index(y0 + (m - 1), ny, wrap)
-        acc = wx[0] * c[row, xs[0]] + wx[1] * c[row, xs[1]] + wx[2] * c[row, xs[2]] + wx[3] * c[row, xs[3]]
-        out += wy[m] * acc
-    return out
+    # The cubic B-spline of the coefficients, extended periodically (wrapping maps) or by
+    # whole-sample mirroring (period 2 (n - 1)), as ndimage's "grid-wrap" and "mirror" modes.
+    mode = "grid-wrap" if _wraps(surface) else "mirror"
+    coords = np.vstack([np.ravel(y), np.ravel(x)])
+    return ndimage.map_coordinates(c, coords, order=3, mode=mode, prefilter=False).reshape(x.shape)
