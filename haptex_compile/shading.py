@@ -44,7 +44,10 @@ GRAZING_DEG = 75.0
 # Joint light search (see _refine_light): reduced image side, the assumed alignment of the best
 # lit normal with the light (cos 35°), and the slant bias that assumption can cause.
 SEARCH_SIDE_PX = 96
-FINAL_SIDE_PX = 128
+# The final stage's image side: the smallest of these that loses at most MAX_REDUCTION_LOSS
+# of the image's variance (see _refine_light).
+FINAL_SIDES_PX = (128, 192, 256, 384)
+MAX_REDUCTION_LOSS = 0.05
 ALIGN_COS = float(np.cos(np.deg2rad(35.0)))
 CAP_BIAS_DEG = 2.0
 KNEE_FACTOR = 1.25
@@ -52,6 +55,8 @@ SHADOW_CUE = False  # see _refine_light: measured to help one case and break ano
 # Weight of the flat-on-average prior for non-periodic images (see solve_variational).
 LOWFREQ_WEIGHT = 1.0
 LOWFREQ_CYCLES = 1.0
+# Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
+CENSORED = True
 
 
 @dataclass(frozen=True)
@@ -481,6 +486,28 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
 
 
+def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int) -> float:
+    """Fraction of the image's variance (valid pixels) lost by reducing it to `side` pixels."""
+    small, w = _downsample_to(img, valid, side)
+    if small.shape == img.shape:
+        return 0.0
+    import cv2
+
+    back = cv2.resize(small, img.shape[::-1], interpolation=cv2.INTER_LINEAR)
+    v = img[valid]
+    var = float(np.var(v))
+    return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
+
+
+def _final_side(img: np.ndarray, valid: np.ndarray) -> int:
+    """Side of the light search's final image: the smallest of ``FINAL_SIDES_PX`` that keeps
+    all but ``MAX_REDUCTION_LOSS`` of the image's variance, else the largest."""
+    for side in FINAL_SIDES_PX:
+        if side >= max(img.shape) or _reduction_loss(img, valid, side) <= MAX_REDUCTION_LOSS:
+            return side
+    return FINAL_SIDES_PX[-1]
+
+
 def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
@@ -517,12 +544,10 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
         tilt. On the bench surfaces (noise-free) the errors are 0-5° in slant and 0-5° in
         tilt; see ``bench/bench_shading.py`` for the calibration.
     """
-    from haptex_compile.shading_variational import energy, reflectance, solve_variational
+    from haptex_compile.shading_variational import energy, solve_variational
 
-    with np.errstate(invalid="ignore"):
-        dark_full = np.isfinite(img) & (img <= DARK)
-    if mask is not None:
-        dark_full &= np.asarray(mask, bool)
+    dark_full, bright_full = _censored_pixels(img, mask)
+    everywhere = np.ones(img.shape, bool)
 
     def make_fit(side_px):
         # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
@@ -530,8 +555,13 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
         # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
         # bench).
         small, w = _downsample_to(img, valid, side_px)
-        dark = _downsample_to(dark_full.astype(float), np.ones(img.shape, bool), side_px)[0] > 0.5
-        dark &= w == 0
+        # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
+        # each reduced pixel that has too few valid ones.
+        cens = {}
+        if CENSORED:
+            for key, full in (("dark", dark_full), ("bright", bright_full)):
+                frac = _downsample_to(full, everywhere, side_px)[0] * (w == 0)
+                cens[key] = frac if frac.any() else None
         top = float(np.percentile(small[w > 0], 99.9))
         cache: dict[tuple[float, float], tuple[float, float]] = {}
 
@@ -540,13 +570,8 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
             key = (round(s, 3), round(float(t) % 360.0, 3))
             if key not in cache:
                 lv = Light(s, t % 360.0).vector
-                z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS)
-                e = energy(small, w, lv, a, z, lam=0.0)
-                if SHADOW_CUE and dark.any():
-                    # Attached shadows: the surface there must face away from the light.
-                    r = reflectance(z, lv)[dark]
-                    e += 0.5 * float(np.sum((a * np.maximum(r, 0.0)) ** 2))
-                cache[key] = (e, a)
+                z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS, **cens)
+                cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
             return cache[key]
 
         return fit
@@ -576,9 +601,17 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
     t = polish_tilt(e_of, s, float(tilt), 8.0, 1.0)
     s, _ = best(e_of, np.arange(max(MIN_SLANT_DEG, s - 3.0), min(85.0, s + 6.0) + 1e-9, 1.0), t)
     # Final: the sharp minimum on a larger image (the reduced image blurs it; 1° of slant can
-    # cost several points of height error).
-    fit = make_fit(FINAL_SIDE_PX)
+    # cost several points of height error). Images with much detail below the reduced
+    # pixel (fractal surfaces) are not the shading of any surface once averaged: their
+    # reduced misfit has its knee at too high a slant (Brownian H = 0.7, 256 px, slant 15°:
+    # 40° at 96 px, 15° at full resolution). For them the final image is larger and the
+    # slant grid is scanned again on it.
+    final_side = _final_side(img, valid)
+    fit = make_fit(final_side)
     e_of = lambda s_, t_: fit(s_, t_)[0]  # noqa: E731
+    if _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS:
+        errs = np.asarray([e_of(g, t) for g in grid])
+        s = float(grid[errs <= KNEE_FACTOR * errs.min()][0])
     # Slant and tilt are coupled: a compass search over both (8 neighbours), halving steps
     # (from 2°: starting at 1° left the plain weave at 30° stuck 2° and 4° off).
     step = 2.0
@@ -605,6 +638,61 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
 
 # --------------------------------------------------------------------------------------------
 # The driver
+
+
+def _censored_pixels(img: np.ndarray, mask=None) -> tuple[np.ndarray, np.ndarray]:
+    """Black (``<= DARK``) and saturated (``>= SATURATED``) pixels as float32 weights."""
+    with np.errstate(invalid="ignore"):
+        dark = np.isfinite(img) & (img <= DARK)
+        bright = np.isfinite(img) & (img >= SATURATED)
+    if mask is not None:
+        m = np.asarray(mask, bool)
+        dark &= m
+        bright &= m
+    return dark.astype(np.float32), bright.astype(np.float32)
+
+
+def _embed(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """`a` in the top-left corner of a zero array of `shape`."""
+    out = np.zeros(shape, a.dtype)
+    out[: a.shape[0], : a.shape[1]] = a
+    return out
+
+
+def _solve_domain(img: np.ndarray, valid: np.ndarray, mask, periodic: bool):
+    """The periodic domain the variational solver works on.
+
+    A tile is its own domain. A plain image is embedded in a larger periodic domain whose
+    margin carries no data (its edges are free), with the flat-on-average prior.
+
+    Returns
+    -------
+    (image, weight, kwargs)
+        Domain image (invalid pixels set to the mean), boolean data weights, and the keyword
+        arguments of :func:`~haptex_compile.shading_variational.solve_variational` that
+        describe the domain (data region, prior, censored pixels).
+    """
+    rows, cols = img.shape
+    dark, bright = _censored_pixels(img, mask)
+    fill = float(np.mean(img[valid]))
+    kwargs: dict = {}
+    if periodic:
+        dom_img, dom_w = img, valid
+    else:
+        pad = max(8, int(0.08 * max(rows, cols)))
+        shape = (
+            sfft.next_fast_len(rows + pad, real=True),
+            sfft.next_fast_len(cols + pad, real=True),
+        )
+        dom_img = _embed(img, shape)
+        dom_w = _embed(valid, shape)
+        dark, bright = (_embed(a, shape) for a in (dark, bright))
+        kwargs.update(
+            data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES
+        )
+    if CENSORED:
+        kwargs.update(dark=dark, bright=bright)
+    return np.where(dom_w, dom_img, fill), dom_w, kwargs
 
 
 def _brightness_start(
@@ -726,19 +814,7 @@ def shape_from_shading(
             " carry no information and cast shadows are not modelled; expect large errors"
         )
     rows, cols = img.shape
-    if periodic:
-        dom_img, dom_w = img, valid
-    else:
-        pad = max(8, int(0.08 * max(rows, cols)))
-        shape = (
-            sfft.next_fast_len(rows + pad, real=True),
-            sfft.next_fast_len(cols + pad, real=True),
-        )
-        dom_img = np.full(shape, float(np.mean(img[valid])))
-        dom_img[:rows, :cols] = np.where(valid, img, dom_img[0, 0])
-        dom_w = np.zeros(shape, bool)
-        dom_w[:rows, :cols] = valid
-    dom_img = np.where(dom_w, dom_img, float(np.mean(img[valid])))
+    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, mask, periodic)
     if z0 is None and light.slant_deg < MIN_SLANT_DEG:
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
     kwargs = {}
@@ -748,10 +824,7 @@ def shape_from_shading(
         kwargs.update(min_size=24, coarse_gn=6, mid_gn=3, fine_gn=2, coarse_cg=30, fine_cg=10)
     if method == "accurate":
         kwargs.update(coarse_gn=30, mid_gn=8, fine_gn=6, coarse_cg=20, fine_cg=20, tol=0.01)
-    if not periodic:
-        kwargs.update(
-            data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES
-        )
+    kwargs.update(domain_kwargs)
     z, albedo = solve_variational(
         dom_img, dom_w.astype(np.float32), light.vector, albedo, z0=z0, **kwargs
     )

@@ -40,6 +40,8 @@ import numpy as np
 import scipy.fft as sfft
 import cv2
 
+from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
+
 _F = np.float32
 
 
@@ -151,9 +153,17 @@ def _reflectance(p, q, light):
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
-    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False):
+    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False,
+                 dark=None, bright=None):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
+        # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
+        # only that albedo R <= DARK_LEVEL (attached shadow: the surface faces away from the
+        # light), saturated ones that albedo R >= BRIGHT_LEVEL. One-sided terms.
+        self.dark = None if dark is None or not np.any(dark > 0) else dark.astype(_F)
+        self.bright = None if bright is None or not np.any(bright > 0) else bright.astype(_F)
+        if gradient_data:
+            self.dark = self.bright = None
         # Gradient data: compare the differences of neighbouring pixels (both valid) rather
         # than the intensities, so that a uniform brightness error (albedo, ambient light)
         # cannot be explained by uniform roughness.
@@ -203,7 +213,33 @@ class _Problem:
         if self.grad_data:
             rx, ry = _fx(res), _fy(res)
             return 0.5 * float(np.sum(self.wx * rx * rx) + np.sum(self.wy * ry * ry))
-        return 0.5 * float(np.sum(self.w * res * res))
+        e = 0.5 * float(np.sum(self.w * res * res))
+        if self.dark is not None or self.bright is not None:
+            model = res + self.img
+            for c_w, c_r in self.censored_terms(model):
+                e += 0.5 * float(np.sum(c_w * c_r * c_r))
+        return e
+
+    def censored_terms(self, model):
+        """(weight, residual) of the one-sided terms of the censored pixels at `model`."""
+        out = []
+        if self.dark is not None:
+            out.append((self.dark, np.maximum(model - DARK_LEVEL, 0.0)))
+        if self.bright is not None:
+            out.append((self.bright, np.minimum(model - BRIGHT_LEVEL, 0.0)))
+        return out
+
+    def data_weights(self, res):
+        """Gradient of the data energy with respect to the model image, and the Gauss-Newton
+        weight of each pixel (censored terms count where they are active)."""
+        if self.grad_data or (self.dark is None and self.bright is None):
+            return self.data_grad(res), self.w
+        wres = self.w * res
+        w_act = self.w.copy()
+        for c_w, c_r in self.censored_terms(res + self.img):
+            wres += c_w * c_r
+            w_act += c_w * (c_r != 0)
+        return wres, w_act
 
     def data_grad(self, res):
         """Derivative of the data energy with respect to the residual image."""
@@ -262,11 +298,10 @@ class _Problem:
         """One Gauss-Newton direction by PCG; returns (dz, energy gradient)."""
         p, q = _dx(z), _dy(z)
         r, rp, rq = _reflectance(p, q, self.light)
-        w = self.w
         res = albedo * r - self.img
         ja = albedo * rp
         jb = albedo * rq
-        wres = self.data_grad(res)
+        wres, w = self.data_weights(res)
         # grad = J^T W res + lam L L z ; D^T = -D for periodic central differences.
         grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap2(z)
         if self.lf is not None:
@@ -368,6 +403,14 @@ def _downsample(img, w):
     return out.astype(_F), ww.astype(_F)
 
 
+def _area_half(a):
+    """Halve a weight map by area averaging (None stays None)."""
+    if a is None:
+        return None
+    size = (max(a.shape[1] // 2, 1), max(a.shape[0] // 2, 1))
+    return cv2.resize(a.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+
+
 def _upsample(z, shape):
     """Upsample a height in pixel units to `shape` (values scale with the pixel ratio)."""
     factor = shape[1] / z.shape[1]
@@ -401,6 +444,8 @@ def solve_variational(
     gradient_data: bool = False,
     bound_max_level: int = 0,
     albedo_max: float = 1e3,
+    dark: np.ndarray | None = None,
+    bright: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -457,6 +502,10 @@ def solve_variational(
         slopes across the light are penalised (along it, the linear shading term fixes them).
     lowfreq_cycles : float
         Cut-off of that penalty: a Gaussian low-pass at this many cycles per data region.
+    dark, bright : ndarray, optional
+        Weights of the censored pixels: black ones (attached shadows), which only say that
+        ``albedo R <= DARK_LEVEL``, and saturated ones, ``albedo R >= BRIGHT_LEVEL``. Each
+        adds a one-sided term (zero when the bound holds); `weight` should be 0 there.
 
     Returns
     -------
@@ -464,23 +513,24 @@ def solve_variational(
         Height in pixel units (float32), mean 0.
     albedo : float
     """
-    pyramid = [(image.astype(_F), weight.astype(_F))]
+    pyramid = [(image.astype(_F), weight.astype(_F), dark, bright)]
     while min(pyramid[-1][0].shape) // 2 >= min_size and len(pyramid) < max_levels:
-        pyramid.append(_downsample(*pyramid[-1]))
+        img, w, d, b = pyramid[-1]
+        pyramid.append((*_downsample(img, w), _area_half(d), _area_half(b)))
     z = None
     if z0 is not None:
         zf = z0.astype(_F)
         z = cv2.resize(zf, pyramid[-1][0].shape[::-1], interpolation=cv2.INTER_AREA)
         z = z * (pyramid[-1][0].shape[1] / zf.shape[1])
     for level in range(len(pyramid) - 1, -1, -1):
-        img, w = pyramid[level]
+        img, w, d, b = pyramid[level]
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
         lowfreq = None
         if lowfreq_weight > 0 and data_shape is not None:
             side = max(data_shape) * img.shape[1] / image.shape[1]
             lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
         prob = _Problem(
-            img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data
+            img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b
         )
         if level > bound_max_level:
             prob.albedo_min = 0.0
@@ -498,6 +548,8 @@ def reflectance(z: np.ndarray, light_vec: np.ndarray) -> np.ndarray:
     return (lz - p * lx - q * ly) / np.sqrt(1.0 + p * p + q * q)
 
 
-def energy(image, weight, light_vec, albedo, z, lam=1e-4) -> float:
-    """The shading energy of height `z` (pixel units) on the periodic domain."""
-    return _Problem(image, weight, light_vec, lam, 1).energy(z.astype(_F), albedo)
+def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=None) -> float:
+    """The shading energy of height `z` (pixel units) on the periodic domain (`dark` and
+    `bright`: censored pixels, as in :func:`solve_variational`)."""
+    prob = _Problem(image, weight, light_vec, lam, 1, dark=dark, bright=bright)
+    return prob.energy(z.astype(_F), albedo)
