@@ -57,6 +57,8 @@ LOWFREQ_WEIGHT = 1.0
 LOWFREQ_CYCLES = 1.0
 # Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
 CENSORED = True
+TERMINATOR_FRACTION = 0.25
+OVEREXPOSED_RING = 0.9
 
 
 @dataclass(frozen=True)
@@ -641,14 +643,40 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
 
 
 def _censored_pixels(img: np.ndarray, mask=None) -> tuple[np.ndarray, np.ndarray]:
-    """Black (``<= DARK``) and saturated (``>= SATURATED``) pixels as float32 weights."""
+    """Attached shadows and over-exposed shading, as float32 weights of one-sided bounds.
+
+    A black (``<= DARK``) region is an attached shadow, where the surface faces away from the
+    light, only if a terminator bounds it: the shading falls to zero continuously, so the lit
+    pixels around it are dim (median at most ``TERMINATOR_FRACTION`` of the brightest). Stains
+    and cast shadows have sharp edges and stay plain missing data. Likewise a saturated
+    (``>= SATURATED``) region counts as over-exposed shading only if the shading rises to it
+    continuously (the pixels around it at least ``OVEREXPOSED_RING``), not a specular highlight.
+    """
+    finite = np.isfinite(img)
     with np.errstate(invalid="ignore"):
-        dark = np.isfinite(img) & (img <= DARK)
-        bright = np.isfinite(img) & (img >= SATURATED)
+        dark = finite & (img <= DARK)
+        bright = finite & (img >= SATURATED)
     if mask is not None:
         m = np.asarray(mask, bool)
         dark &= m
         bright &= m
+    lit = valid_pixels(img, mask)
+    top = float(np.percentile(img[lit], 99.9)) if lit.any() else 1.0
+
+    def bounded(region, keep):
+        if not region.any():
+            return region
+        labels, n = ndimage.label(region, structure=np.ones((3, 3)))
+        ring = lit & ~region & ndimage.binary_dilation(region, structure=np.ones((3, 3)))
+        ring_labels = np.where(ring, ndimage.maximum_filter(labels, size=3), 0)
+        index = np.arange(1, n + 1)
+        med = np.asarray(ndimage.median(img, ring_labels, index), dtype=float)
+        ok = np.zeros(n + 1, bool)
+        ok[1:] = np.isfinite(med) & keep(med)
+        return ok[labels]
+
+    dark = bounded(dark, lambda med: med <= TERMINATOR_FRACTION * top)
+    bright = bounded(bright, lambda med: med >= OVEREXPOSED_RING)
     return dark.astype(np.float32), bright.astype(np.float32)
 
 
