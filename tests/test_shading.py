@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from haptex_compile import known_surfaces as ts
+from haptex_compile import shading
 from haptex_compile.shading import (
     Light,
+    _censored_pixels,
     SfsResult,
     estimate_light,
     normalised_height_error,
@@ -17,6 +19,7 @@ from haptex_compile.shading import (
     tsai_shah,
     valid_pixels,
 )
+from haptex_compile.shading_variational import reflectance
 
 PX = 20.0  # µm per pixel, as in the anchors
 
@@ -246,6 +249,53 @@ def test_saturated_and_black_pixels_are_masked_not_fitted(bumps128):
     assert np.std(np.diff(inside, 2, axis=1)) < 3 * np.std(np.diff(res.height, 2, axis=1))
 
 
+def test_black_regions_are_shadows_only_behind_a_terminator(bumps128):
+    # Rendered attached shadows fade to black (a terminator); a stain cuts in sharply, and so
+    # does a specular highlight; over-exposed shading rises to saturation continuously.
+    sphere = ts.sphere_cap((128, 128), PX)
+    img = render_lambertian(sphere, PX, Light(60.0, 300.0), 0.8, periodic=True)
+    dark, bright = _censored_pixels(img)
+    assert dark.sum() == (img <= 0.01).sum() > 100 and bright.sum() == 0
+    img = render_lambertian(bumps128, PX, Light(40.0, 100.0), 0.8, periodic=True)
+    img[40:70, 40:90] = 0.0
+    img[90:110, 10:40] = 1.0
+    dark, bright = _censored_pixels(img)
+    assert dark.sum() == 0 and bright.sum() == 0
+    over = np.clip(render_lambertian(bumps128, PX, Light(40.0, 100.0), 1.0, periodic=True) * 1.25, 0, 1)
+    assert _censored_pixels(over)[1].sum() == (over >= 0.99).sum() > 1000
+
+
+@pytest.mark.parametrize("censored", [True, False])
+def test_attached_shadows_face_away_from_the_light(monkeypatch, censored):
+    # The one-sided shadow term: where the image is an attached shadow, the recovered
+    # surface must not face the light (albedo R <= 0.01 within rounding). Without the term
+    # (the previous solver) the shadow is only filled smoothly and part of it faces the light.
+    monkeypatch.setattr(shading, "CENSORED", censored)
+    sphere = ts.sphere_cap((128, 128), PX)
+    light = Light(60.0, 300.0)
+    img = render_lambertian(sphere, PX, light, 0.8, periodic=True)
+    shadow = img <= 0.01
+    res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
+    lit = res.albedo * reflectance(res.height / PX, light.vector)[shadow]
+    facing_away = float(np.mean(lit <= 0.02))
+    error = normalised_height_error(res.height, sphere)
+    if censored:
+        assert facing_away >= 0.99 and error <= 0.04
+    else:
+        assert facing_away < 0.95 and error > 0.04
+
+
+@pytest.mark.parametrize("censored", [True, False])
+def test_over_exposed_pixels_are_a_lower_bound(bumps128, monkeypatch, censored):
+    monkeypatch.setattr(shading, "CENSORED", censored)
+    light = Light(40.0, 100.0)
+    img = np.clip(render_lambertian(bumps128, PX, light, 1.0, periodic=True) * 1.25, 0, 1)
+    over = img >= 0.99
+    res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
+    model = res.albedo * reflectance(res.height / PX, light.vector)[over]
+    assert (float(np.mean(model >= 0.98)) >= 0.95) == censored
+
+
 def test_flat_image_gives_flat_height_with_warning():
     img = np.full((64, 64), 0.6)
     for light in (Light(30.0, 0.0), None):
@@ -335,6 +385,19 @@ def test_estimated_light_costs_at_most_five_points(name, slant, tilt):
     found = shape_from_shading(img, pixel_size_um=PX, light=est, periodic=True)
     e_given = normalised_height_error(given.height, h)
     assert normalised_height_error(found.height, h) <= e_given + 0.05
+
+
+def test_light_search_keeps_the_fine_detail_of_fractal_images():
+    # Averaged to 96 px, the shading of a 256 px Brownian surface (H = 0.7) loses a third of
+    # its variance and is no longer the shading of any surface: its misfit's knee sat at 40°
+    # for a 15° light. The final stage then works at full detail.
+    h = ts.brownian_surface((256, 256), PX, hurst=0.7, seed=2)
+    light = Light(15.0, 30.0)
+    img = render_lambertian(h, PX, light, 0.8, periodic=True)
+    assert shading._reduction_loss(img, valid_pixels(img), shading.SEARCH_SIDE_PX) > 0.2
+    est, _ = estimate_light(img)
+    assert abs(est.slant_deg - 15.0) <= 3.0
+    assert abs((est.tilt_deg - 30.0 + 90.0) % 180.0 - 90.0) <= 5.0
 
 
 def test_estimated_slant_follows_the_true_slant(bumps128):
