@@ -4,9 +4,6 @@ Every generator returns a float64 array ``height_um`` of the requested ``shape``
 sampled at pixel centres ``x = (j + 0.5) * pixel_size_um``, ``y = (i + 0.5) * pixel_size_um``
 (x along columns = +u, y along rows = +v). The woven, bump and Brownian surfaces are periodic
 over the image when stated, so that they can stand for a cleaned tile.
-
-The module name starts with ``test_`` because the issue asked for it; it holds no tests
-(pytest only collects from ``tests/``).
 """
 from __future__ import annotations
 

@@ -806,8 +806,9 @@ def shape_from_shading(
     n_bad = int(img.size - valid.sum())
     if n_bad:
         warnings.append(
-            f"{n_bad} saturated, black, non-finite or masked pixels carry no slope information;"
-            " filled by smoothness"
+            f"{n_bad} saturated, black, non-finite or masked pixels carry no slope information:"
+            " attached shadows and over-exposed shading enter as bounds, the rest is filled by"
+            " smoothness"
         )
     flat = np.zeros(img.shape)
     if valid.sum() < max(16, 0.01 * img.size) or float(np.std(img[valid])) < 1e-4:

@@ -5,11 +5,14 @@ Energy (heights ``z`` in pixel units, slopes by central differences):
 
     E(z) = 1/2 sum_i w_i (albedo R(p_i, q_i) - I_i)**2  +  lam/2 sum_i (laplacian z)_i**2
 
-with the exact Lambertian ``R = (lz - p lx - q ly) / sqrt(1 + p² + q²)``. Integrability holds by
-construction (the unknown is the height itself); the small thin-plate term removes the
-checkerboard that central differences cannot see and fills masked pixels. All operators are
-periodic; a non-periodic image is embedded in a larger periodic domain whose margin has no data
-(weight 0), so the margin is filled by the smoothness term alone and the image's edges are free.
+with the exact Lambertian ``R = (lz - p lx - q ly) / sqrt(1 + p² + q²)``, plus one-sided terms
+for censored pixels: ``1/2 max(albedo R - DARK, 0)**2`` where the image is an attached shadow
+(the surface must face away from the light) and ``1/2 min(albedo R - SATURATED, 0)**2`` where it
+is over-exposed. Integrability holds by construction (the unknown is the height itself); the
+small thin-plate term removes the checkerboard that central differences cannot see and fills
+masked pixels. All operators are periodic; a non-periodic image is embedded in a larger periodic
+domain whose margin has no data (weight 0), so the margin is filled by the smoothness term alone
+and the image's edges are free.
 
 Each Gauss-Newton step solves ``(J^T W J + lam L^T L) dz = -grad`` by conjugate gradients
 preconditioned with the same operator for constant coefficients (the pixel average of the
