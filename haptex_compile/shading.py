@@ -352,7 +352,34 @@ def _downsample_to(img: np.ndarray, valid: np.ndarray, side: int):
     size = (max(int(round(cols / f)), 8), max(int(round(rows / f)), 8))
     w = valid.astype(np.float32)
     wi = cv2.resize(np.where(valid, img, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
-    ww = cv2.resize(w, size, interpolation=cv2.INTER_AREA)
+    return _normalised(wi, cv2.resize(w, size, interpolation=cv2.INTER_AREA))
+
+
+def _block_average(img: np.ndarray, valid: np.ndarray, side: int):
+    """Average image and weights over f x f blocks, f the smallest integer that brings the
+    larger side to at most `side` pixels (edges wrap to fill the last blocks).
+
+    The light search's final image: averaging over fractional blocks (:func:`_downsample_to`)
+    mixes neighbouring pixels unevenly, which is not the shading of any surface. Measured on
+    a lattice relief of 16 px cells at 256 px lit at 45°: reduced to 192 px that way, its
+    misfit's minimum moved 15° in tilt; averaged over 2 x 2 blocks (128 px) it stayed on the
+    true light. (The coarse stage keeps :func:`_downsample_to`: with 3 x 3 blocks instead, the
+    bench's plain weave lost its 60° estimate, 60° -> 66°.)
+    """
+    rows, cols = img.shape
+    f = int(np.ceil(max(rows, cols) / side))
+    if f <= 1:
+        return img.astype(np.float32), valid.astype(np.float32)
+    pad = ((0, (-rows) % f), (0, (-cols) % f))
+    w = np.pad(valid.astype(np.float32), pad, mode="wrap")
+    wi = np.pad(np.where(valid, img, 0).astype(np.float32), pad, mode="wrap")
+    r, c = w.shape[0] // f, w.shape[1] // f
+    blocks = lambda a: a.reshape(r, f, c, f).mean(axis=(1, 3))  # noqa: E731
+    return _normalised(blocks(wi), blocks(w))
+
+
+def _normalised(wi: np.ndarray, ww: np.ndarray):
+    """Weighted image over weights, and the reduced pixels that are mostly valid."""
     out = np.where(ww > 1e-3, wi / np.maximum(ww, 1e-3), 0.0).astype(np.float32)
     return out, (ww > 0.5).astype(np.float32)
 
@@ -490,9 +517,9 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
 
 
-def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int) -> float:
+def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=None) -> float:
     """Fraction of the image's variance (valid pixels) lost by reducing it to `side` pixels."""
-    small, w = _downsample_to(img, valid, side)
+    small, w = (reduce or _downsample_to)(img, valid, side)
     if small.shape == img.shape:
         return 0.0
     import cv2
@@ -504,10 +531,13 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int) -> float:
 
 
 def _final_side(img: np.ndarray, valid: np.ndarray) -> int:
-    """Side of the light search's final image: the smallest of ``FINAL_SIDES_PX`` that keeps
-    all but ``MAX_REDUCTION_LOSS`` of the image's variance, else the largest."""
+    """Side of the light search's final image: the smallest of ``FINAL_SIDES_PX`` whose block
+    average (:func:`_block_average`) keeps all but ``MAX_REDUCTION_LOSS`` of the image's
+    variance, else the largest."""
     for side in FINAL_SIDES_PX:
-        if side >= max(img.shape) or _reduction_loss(img, valid, side) <= MAX_REDUCTION_LOSS:
+        if side >= max(img.shape):
+            return side
+        if _reduction_loss(img, valid, side, _block_average) <= MAX_REDUCTION_LOSS:
             return side
     return FINAL_SIDES_PX[-1]
 
@@ -554,18 +584,18 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
     dark_full, bright_full = _censored_pixels(img, mask)
     everywhere = np.ones(img.shape, bool)
 
-    def make_fit(side_px):
+    def make_fit(side_px, reduce=_downsample_to):
         # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
         # lights fit as well (measured on 256 px bumps: slant 15° estimated as 38°). Averaging
         # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
         # bench).
-        small, w = _downsample_to(img, valid, side_px)
+        small, w = reduce(img, valid, side_px)
         # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
         # each reduced pixel that has too few valid ones.
         cens = {}
         if CENSORED:
             for key, full in (("dark", dark_full), ("bright", bright_full)):
-                frac = _downsample_to(full, everywhere, side_px)[0] * (w == 0)
+                frac = reduce(full, everywhere, side_px)[0] * (w == 0)
                 cens[key] = frac if frac.any() else None
         top = float(np.percentile(small[w > 0], 99.9))
         cache: dict[tuple[float, float], tuple[float, float]] = {}
@@ -612,7 +642,7 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
     # 40° at 96 px, 15° at full resolution). For them the final image is larger and the
     # slant grid is scanned again on it.
     final_side = _final_side(img, valid)
-    fit = make_fit(final_side)
+    fit = make_fit(final_side, _block_average)
     e_of = lambda s_, t_: fit(s_, t_)[0]  # noqa: E731
     if _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS:
         # Averaging biases the slant upwards (it darkens rough shading): scan up to just above
