@@ -54,7 +54,6 @@ _CSV_OPTIONAL = {"thickness_mm", "source"}
 _CSV_TEXT = {"fabric", "weave", "source"}
 
 
-
 @dataclass(frozen=True)
 class KesData:
     """KES-F surface data of one fabric.
