@@ -29,6 +29,10 @@ from haptex_compile.surface import Surface
 
 LOG = logging.getLogger("haptex.photo")
 DEFAULT_RELIEF_RMS_UM = 10.0  # RMS height of a photo's relief when nothing else gives a scale
+# The light is estimated on a periodic window of the tile with sides in this range (px), the
+# lattice strained by at most this much (see _light_from_small_window).
+LIGHT_WINDOW_PX = (64, 256)
+LIGHT_WINDOW_STRAIN = 0.02
 
 
 def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_size_um: float,
@@ -124,7 +128,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     """Surface from a grey image in [0, 1] (no file I/O)."""
     from haptex_compile.fractal import brownian_surface, roughness_from_residual
     from haptex_compile.lattice import Lattice, find_lattice
-    from haptex_compile.shading import Light, shape_from_shading
+    from haptex_compile.shading import Light, estimated_light_note, shape_from_shading
     from haptex_compile.surface import periodic_surface_from_tile
     from haptex_compile.tiles import average_tile, flatten_illumination, paint_tile, periodic_window
 
@@ -167,11 +171,18 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     else:
         basis, (rows, cols), image = lattice.basis_px, (ny, nx), tile.synthetic
         solved_on = f"the whole image ({nx} x {ny} px)"
+    light_on = None
+    if light is None and window is not None:
+        light, light_on = _light_from_small_window(tile.tile, lattice.basis_px)
+        if light is not None:
+            LOG.warning("%s: %s (on %s)", spec, estimated_light_note(light), light_on)
     sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None)
     for w in sfs.warnings:
         LOG.warning("%s: %s", spec, w)
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
                          "light_given": options.light is not None, "warnings": list(sfs.warnings), "solved_on": solved_on}
+    if light_on is not None:
+        report["shading"]["light_estimated_on"] = light_on
     # Average the heights over the lattice as well, so the surface repeats exactly (a whole
     # image's solve has slow ramps from its free edges: flattened out first, as for the photo).
     cell = Lattice(True, basis[:, 0], basis[:, 1], 1.0, "surface lattice")
@@ -202,6 +213,28 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     lat = {"t1_px": np.asarray(lattice.t1_px, float), "t2_px": np.asarray(lattice.t2_px, float),
            "confidence": float(lattice.confidence)}
     return SourceResult(surface, "photo", spec, report, lattice=lat, roughness=roughness, source_image=grey)
+
+
+def _light_from_small_window(tile: np.ndarray, basis_px: np.ndarray):
+    """The light estimated on a small periodic window of the averaged tile, and its description.
+
+    The light search solves its candidates on images of at most a few hundred pixels; a large
+    window reduced that far averages the weave's cells away. A window of at most
+    ``LIGHT_WINDOW_PX`` (the lattice strained by up to ``LIGHT_WINDOW_STRAIN``: the light does
+    not depend on a 2 % strain) keeps full resolution. Measured with ``bench/bench_photo.py``'s
+    eight rendered reliefs: median height error 0.25 against 0.66 with the light estimated on
+    the surface's window. (None, None) when no such window exists.
+    """
+    from haptex_compile.shading import estimate_light
+    from haptex_compile.tiles import paint_tile, periodic_window
+
+    small = periodic_window(basis_px, min_px=LIGHT_WINDOW_PX[0], max_px=LIGHT_WINDOW_PX[1],
+                            strain=LIGHT_WINDOW_STRAIN / 3.0, max_strain=LIGHT_WINDOW_STRAIN)
+    if small is None:
+        return None, None
+    basis, (rows, cols) = small
+    light, _ = estimate_light(paint_tile(tile, basis, (rows, cols)))
+    return light, f"a periodic window of {cols} x {rows} px"
 
 
 def heights_at_image_px(result: SourceResult, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ __all__ = [
     "SfsResult",
     "render_lambertian",
     "estimate_light",
+    "estimated_light_note",
     "tsai_shah",
     "shape_from_shading",
     "scale_relief",
@@ -517,6 +518,15 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
 
 
+def estimated_light_note(light: Light) -> str:
+    """The warning that states an estimated light and its uncertainty."""
+    return (
+        f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
+        f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
+        " versus dents, is resolved by assuming light from the top of the image)"
+    )
+
+
 def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=None) -> float:
     """Fraction of the image's variance (valid pixels) lost by reducing it to `side` pixels."""
     small, w = (reduce or _downsample_to)(img, valid, side)
@@ -848,11 +858,7 @@ def shape_from_shading(
         return SfsResult(flat, used, top, method, tuple(warnings))
     if light is None:
         light, albedo = estimate_light(img, mask=mask)
-        warnings.append(
-            f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
-            f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
-            " versus dents, is resolved by assuming light from the top of the image)"
-        )
+        warnings.append(estimated_light_note(light))
     else:
         albedo = _moment_albedo(img[valid], light.slant_deg)
 

@@ -289,16 +289,17 @@ MAX_WINDOW_STRAIN = 3e-3
 WINDOW_STRAIN = 1e-3
 
 
-def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
+def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024, *,
+                    strain: float = WINDOW_STRAIN, max_strain: float = MAX_WINDOW_STRAIN
                     ) -> tuple[np.ndarray, tuple[int, int]] | None:
     """A window shape (rows, cols) and a slightly strained lattice for which the window is periodic.
 
     Finds integer lattice vectors close to (W, 0) and (0, H) for W, H in [min_px, max_px] (the
-    smallest side within ``WINDOW_STRAIN``, else the least strain) and returns the basis B' with
+    smallest side within `strain`, else the least strain) and returns the basis B' with
     ``B' K = diag(W, H)`` (K: those integer vectors). Painting a tile with B' over a rows x cols
     = H x W image gives an exactly array-periodic image of the same texture, which array-periodic
     solvers (shape from shading, the tables' fast path) take as a tile. None when no window
-    strains the lattice by less than ``MAX_WINDOW_STRAIN``.
+    strains the lattice by less than `max_strain`.
 
     Parameters
     ----------
@@ -306,6 +307,8 @@ def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
         Columns t1, t2 in px.
     min_px, max_px : int
         Range of the window's sides.
+    strain, max_strain : float
+        Relative strain of the basis accepted for the smallest side, and at most.
     """
     basis = np.asarray(basis_px, dtype=float)
     inv = np.linalg.inv(basis)
@@ -317,7 +320,7 @@ def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
         k = np.rint(inv @ target)  # integer lattice coordinates nearest to (side, 0) or (0, side)
         miss = np.linalg.norm(basis @ k - target, axis=0)
         miss[~np.any(k != 0, axis=0)] = np.inf
-        close = np.flatnonzero(miss <= WINDOW_STRAIN * sides)
+        close = np.flatnonzero(miss <= strain * sides)
         best = int(close[0]) if close.size else int(np.argmin(miss / sides))  # else the least strain
         columns.append((int(sides[best]), k[:, best]))
     (w, k_a), (h, k_b) = columns
@@ -325,7 +328,7 @@ def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024
     if abs(np.linalg.det(kmat)) < 0.5:
         return None
     strained = np.diag([float(w), float(h)]) @ np.linalg.inv(kmat)
-    if np.linalg.norm(strained - basis) > MAX_WINDOW_STRAIN * np.linalg.norm(basis):
+    if np.linalg.norm(strained - basis) > max_strain * np.linalg.norm(basis):
         return None
     return strained, (h, w)
 

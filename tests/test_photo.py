@@ -7,6 +7,8 @@ the relief up to the affine freedom shading leaves.
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -47,3 +49,30 @@ def test_photo_of_a_periodic_relief_gives_back_the_relief(t1, t2, light):
     # the window's periodic solve reaches 0.02-0.03 here; the whole image with free edges reached
     # 0.02-0.085 on these at 1024-2000 px
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.05
+
+
+def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
+    # A 1024 px photo of a smooth relief on 21 x 16.5 px cells, lit at 30°, 200°: estimated on
+    # a window of at most 256 px, the light comes back within a few degrees (estimated on the
+    # surface's window, reduced for the search, it came out at 41.5° and the height error was
+    # 0.18-0.87), and the heights follow.
+    t1, t2, light = (21.0, 0.0), (0.0, 16.5), (30.0, 200.0)
+    truth_um = lattice_relief((1024, 1024), t1, t2, amplitude_um=12.0)
+    image = render_lambertian(truth_um, PIXEL_UM, Light(*light), 0.8)
+    options = SourceOptions(roughness="none", relief_um=float(np.std(truth_um)))
+    logger = logging.getLogger("haptex")  # the CLI tests may stop it propagating to the root
+    logger.addHandler(caplog.handler)
+    try:
+        result = photo_surface(image, PIXEL_UM, options, "rendered", {})
+    finally:
+        logger.removeHandler(caplog.handler)
+    shading = result.report["shading"]
+    assert not shading["light_given"] and "light_estimated_on" in shading
+    cols, rows = (int(v) for v in shading["light_estimated_on"].split(" of ")[1].split(" px")[0].split(" x "))
+    assert max(rows, cols) <= 256
+    assert abs(shading["light_slant_deg"] - 30.0) <= 3.0
+    assert abs((shading["light_tilt_deg"] - 200.0 + 90.0) % 180.0 - 90.0) <= 3.0
+    assert any("light estimated" in r.getMessage() for r in caplog.records)
+    y, x = np.mgrid[100:924:4, 100:924:4]
+    height = heights_at_image_px(result, x.ravel(), y.ravel())
+    assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.1
