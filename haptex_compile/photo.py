@@ -172,7 +172,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         basis, (rows, cols), image = lattice.basis_px, (ny, nx), tile.synthetic
         solved_on = f"the whole image ({nx} x {ny} px)"
     light_on = None
-    if light is None and window is not None:
+    if light is None:
         light, light_on = _light_from_small_window(tile.tile, lattice.basis_px)
         if light is not None:
             LOG.warning("%s: %s (on %s)", spec, estimated_light_note(light), light_on)
