@@ -9,7 +9,9 @@ best affine fit, over every other pixel of the photo (the surface read at the ph
 with ``photo.heights_at_image_px``; 0 perfect, 1 nothing recovered).
 
 Baseline, measured in the same run: the surface on the whole photo, shaded with free edges
-(what the pipeline did before its surface became a periodic window of the tile).
+(what the pipeline did before its surface became a periodic window of the tile), with the light,
+when estimated, estimated on the whole photo (the pipeline estimates it on a small periodic
+window of the tile, at most 256 px).
 
     python bench/bench_photo.py [--quick]
 """
@@ -56,7 +58,7 @@ def _solve(image: np.ndarray, truth: np.ndarray, light, whole: bool) -> tuple[fl
 
 
 def run(quick: bool = False) -> str:
-    rows = ["| relief | lattice t1; t2 (px) | light slant, tilt (°) | light | whole image: error | s | periodic window: error | s | window (px) | error ratio window / whole | time ratio |",
+    rows = ["| relief | lattice t1; t2 (px) | light slant, tilt (°) | light | whole image (baseline): error | s | periodic window: error | s | window (px) | error ratio window / whole | time ratio |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     ratios: dict[str, list[float]] = {"given": [], "estimated": []}
     times: list[float] = []
