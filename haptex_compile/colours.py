@@ -91,6 +91,15 @@ class TwoColourModel:
         wp, wnp = self.weights(np.asarray(self.base_frequencies_hz, dtype=float))
         return np.stack([wp, wnp]) ** self.summation_exponent
 
+    def intensities(self, a40: np.ndarray, a320: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Channel intensities (I_p, I_np) of amplitude pairs (µm): the inverse of :meth:`decompose`
+        inside the gamut, ``I_c = (sum_k M[c, k] a_k^n)^(1/n)``."""
+        n = self.summation_exponent
+        a = np.stack(np.broadcast_arrays(np.asarray(a40, dtype=float), np.asarray(a320, dtype=float)))
+        u = np.maximum(a, 0.0) ** n
+        i = np.tensordot(self.matrix(), u, axes=1) ** (1.0 / n)
+        return i[0], i[1]
+
     def condition_number(self) -> float:
         """2-norm condition number of :meth:`matrix`."""
         return float(np.linalg.cond(self.matrix()))

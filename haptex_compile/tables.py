@@ -355,8 +355,6 @@ def mean_tactile(height_um: np.ndarray, pixel_size_um: float, *, periodic: bool 
     tables = build_tables(surface, model, AnalysisSettings(footprint_sigma_mm=footprint_sigma_mm),
                           np.asarray(directions_deg), np.asarray(speeds_mm_s),
                           table_grid(surface, max(0.25, surface.pixel_size_mm)))
-    n = model.summation_exponent
-    u = np.stack([tables.a40.astype(float).ravel(), tables.a320.astype(float).ravel()]) ** n
-    intensity = (model.matrix() @ u) ** (1.0 / n)
+    i_p, i_np = model.intensities(tables.a40, tables.a320)
     return dict(a40=float(tables.a40.mean()), a320=float(tables.a320.mean()),
-                i_p=float(intensity[0].mean()), i_np=float(intensity[1].mean()))
+                i_p=float(i_p.mean()), i_np=float(i_np.mean()))

@@ -440,3 +440,16 @@ def test_band_weight_properties():
     assert b[5] == pytest.approx(0.5, rel=1e-9)  # raised cosine half-way from 600 to 800 Hz
     with pytest.raises(ValueError):
         Band(low_hz=700.0)
+
+
+def test_intensities_invert_the_decomposition_inside_the_gamut():
+    model = TwoColourModel()
+    a40 = np.array([3.0, 0.0, 1.0, 12.0])
+    a320 = np.array([0.0, 2.0, 0.5, 0.01])
+    d = model.decompose(*model.intensities(a40, a320))
+    np.testing.assert_allclose(d.a40, a40, atol=1e-9)
+    np.testing.assert_allclose(d.a320, a320, atol=1e-9)
+    # a pure tone at a base frequency is its amplitude times the channel weight there
+    ip, inp = model.intensities(2.0, 0.0)
+    wp, wnp = model.weights(40.0)
+    assert ip == pytest.approx(2.0 * wp) and inp == pytest.approx(2.0 * wnp)
