@@ -486,7 +486,12 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
         The light with its uncertainty, and the albedo.
     """
     img, _ = _as_image(image)
-    valid = valid_pixels(img, mask)
+    return _estimate_light(img, valid_pixels(img, mask), mask, refine)
+
+
+def _estimate_light(img, valid, mask, refine, censored=None) -> tuple[Light, float]:
+    """:func:`estimate_light` on a prepared image (`censored`: :func:`_censored_pixels`
+    of it, when the caller has them)."""
     if valid.sum() < 16 or float(np.std(img[valid])) < 1e-4:
         # No shading: nothing to estimate. Overhead light with full uncertainty.
         top = float(np.max(img[valid])) if valid.any() else 1.0
@@ -509,7 +514,9 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
     slant_sd = float(min(max(slant_sd, 5.0), 90.0))
     albedo = None
     if refine:
-        slant, tilt, slant_sd, tilt_sd, albedo = _refine_light(img, valid, slant, tilt, mask=mask)
+        slant, tilt, slant_sd, tilt_sd, albedo = _refine_light(
+            img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask)
+        )
     if albedo is None:
         albedo = _moment_albedo(img[valid], slant)
     if np.sin(np.deg2rad(tilt)) > 0:
@@ -527,9 +534,9 @@ def estimated_light_note(light: Light) -> str:
     )
 
 
-def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=None) -> float:
+def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downsample_to) -> float:
     """Fraction of the image's variance (valid pixels) lost by reducing it to `side` pixels."""
-    small, w = (reduce or _downsample_to)(img, valid, side)
+    small, w = reduce(img, valid, side)
     if small.shape == img.shape:
         return 0.0
     import cv2
@@ -552,7 +559,7 @@ def _final_side(img: np.ndarray, valid: np.ndarray) -> int:
     return FINAL_SIDES_PX[-1]
 
 
-def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
+def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
     For each candidate light the default solver fits a surface to a reduced image (at most
@@ -591,7 +598,7 @@ def _refine_light(img, valid, slant, tilt, side=SEARCH_SIDE_PX, mask=None):
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
-    dark_full, bright_full = _censored_pixels(img, mask)
+    dark_full, bright_full = censored
     everywhere = np.ones(img.shape, bool)
 
     def make_fit(side_px, reduce=_downsample_to):
@@ -738,11 +745,12 @@ def _embed(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _solve_domain(img: np.ndarray, valid: np.ndarray, mask, periodic: bool):
+def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool):
     """The periodic domain the variational solver works on.
 
     A tile is its own domain. A plain image is embedded in a larger periodic domain whose
-    margin carries no data (its edges are free), with the flat-on-average prior.
+    margin carries no data (its edges are free), with the flat-on-average prior. `censored`
+    is :func:`_censored_pixels` of the image.
 
     Returns
     -------
@@ -752,7 +760,7 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, mask, periodic: bool):
         describe the domain (data region, prior, censored pixels).
     """
     rows, cols = img.shape
-    dark, bright = _censored_pixels(img, mask)
+    dark, bright = censored
     fill = float(np.mean(img[valid]))
     kwargs: dict = {}
     if periodic:
@@ -856,8 +864,9 @@ def shape_from_shading(
         used = light if light is not None else Light(0.0, 0.0, 90.0, 180.0)
         top = float(np.max(img[valid])) if valid.any() else 1.0
         return SfsResult(flat, used, top, method, tuple(warnings))
+    censored = _censored_pixels(img, mask)
     if light is None:
-        light, albedo = estimate_light(img, mask=mask)
+        light, albedo = _estimate_light(img, valid, mask, True, censored)
         warnings.append(estimated_light_note(light))
     else:
         albedo = _moment_albedo(img[valid], light.slant_deg)
@@ -890,7 +899,7 @@ def shape_from_shading(
             " carry no information and cast shadows are not modelled; expect large errors"
         )
     rows, cols = img.shape
-    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, mask, periodic)
+    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic)
     if z0 is None and light.slant_deg < MIN_SLANT_DEG:
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
     kwargs = {}

@@ -400,10 +400,7 @@ class _Problem:
 
 def _downsample(img, w):
     """Halve an image and its weights (area average over weighted pixels)."""
-    rows, cols = img.shape
-    size = (max(cols // 2, 1), max(rows // 2, 1))
-    wi = cv2.resize((img * w).astype(np.float32), size, interpolation=cv2.INTER_AREA)
-    ww = cv2.resize(w.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    wi, ww = _area_half(img * w), _area_half(w)
     out = np.where(ww > 1e-6, wi / np.maximum(ww, 1e-6), 0.0)
     return out.astype(_F), ww.astype(_F)
 
