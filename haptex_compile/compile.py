@@ -12,6 +12,7 @@ import numpy as np
 
 from haptex_compile.asset_writer import AssetContent, write_asset
 from haptex_compile.colours import TwoColourModel
+from haptex_compile.direction_refinement import DIRECTION_DECIMALS, direction_draws, split_directions
 from haptex_compile.errors import InputError
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
@@ -28,6 +29,8 @@ CHECK_WORKERS = 2
 # was not met.
 MAX_TABLE_VALUES = 16_000_000
 MAX_REFINEMENTS = 3
+REFINE_BUDGET = 0.85  # refinement aims at this fraction of the tolerance
+MAX_DIRECTIONS = 144  # direction nodes in [0, 180): 1.25 deg on average
 MAX_HALVINGS_PER_ROUND = 2
 
 
@@ -127,13 +130,18 @@ def relative_errors(model: TwoColourModel, a40_t, a320_t, a40_r, a320_r) -> np.n
 
 
 def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
-                 seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY) -> dict[str, Any]:
+                 seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY,
+                 direction_range_deg: tuple[float, float] | None = None) -> dict[str, Any]:
     """Measure table playback against the reference renderer at random points between nodes.
 
     Three families of samples isolate where the error comes from: directions halfway between
     nodes, speeds halfway (geometric mean) between nodes, and random positions at node
     directions and speeds; a fourth ("stroke") puts every axis between nodes at once. The union
-    gives the stored statistics.
+    gives the stored statistics. Direction nodes need not be evenly spaced: an interval is
+    drawn with a probability proportional to its width, and a node with half the width of its
+    two intervals, as strokes in random directions meet them. `direction_range_deg` (the
+    scene's range) keeps the intervals within a partial range; by default the nodes wrap
+    around the half turn.
     """
     rng = np.random.default_rng(seed)
     player = _as_player_tables(tables, settings.frame_ms)
@@ -145,12 +153,15 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         fi, fj = rng.uniform(0, ni - 1), rng.uniform(0, nj - 1)
         return grid.origin_mm + fi * grid.basis_mm[0] + fj * grid.basis_mm[1]
 
+    mids, mid_p, node_dirs, node_p = direction_draws(dirs, direction_range_deg)
+
     def mid_direction() -> float:
         if dirs.size == 1:
             return float(dirs[0] + rng.uniform(0, 180))
-        k = rng.integers(dirs.size)
-        nxt = dirs[(k + 1) % dirs.size] + (180.0 if k + 1 == dirs.size else 0.0)
-        return float(0.5 * (dirs[k] + nxt))
+        return float(mids[rng.choice(mids.size, p=mid_p)])
+
+    def node_direction() -> float:
+        return float(node_dirs[rng.choice(node_dirs.size, p=node_p)])
 
     def mid_speed() -> float:
         if speeds.size == 1:
@@ -164,7 +175,7 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         for _ in range(per_family):
             p = random_position()
             # "stroke": every axis between nodes at once, as a random stroke meets them.
-            d = mid_direction() if family in ("direction", "stroke") else float(rng.choice(dirs))
+            d = mid_direction() if family in ("direction", "stroke") else node_direction()
             s = mid_speed() if family in ("speed", "stroke") else float(rng.choice(speeds))
             points.append((family, p, s, d))
 
@@ -226,7 +237,7 @@ def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
              "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
              "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
     chosen: list[str] = []
-    while math.sqrt(sum(v * v for v in share.values())) > 0.85 * tolerance:
+    while math.sqrt(sum(v * v for v in share.values())) > REFINE_BUDGET * tolerance:
         # A share below a quarter of the tolerance is not worth doubling an axis for.
         open_axes = [a for a in share if chosen.count(a) < MAX_HALVINGS_PER_ROUND and share[a] >= 0.25 * tolerance]
         if not open_axes:
@@ -235,6 +246,32 @@ def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
         chosen.append(axis)
         share[axis] /= 3.0
     return chosen or [max(share, key=lambda a: share[a])]
+
+
+def _refined_directions(plan: NodePlan, scene: Scene, model: TwoColourModel, tables: Tables, stats: dict[str, Any],
+                        chosen: list[str], max_nodes: int) -> np.ndarray:
+    """More direction nodes: the intervals with the largest predicted error are split
+    (:func:`~haptex_compile.direction_refinement.split_directions`) until the direction error
+    fits the budget the other axes leave (and is at least divided by 3); all of them (uniform
+    halving) when the measured direction error is no larger than the position error (nothing
+    to calibrate against)."""
+    lo, hi = scene.direction_range_deg
+    full_turn = hi - lo >= 180.0 - 1e-9
+    n_dir = plan.directions_deg.size
+    pos = stats["rms_rel_error_position"]
+    share = math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0))
+    if share <= 0.0 or n_dir < 3:  # every interval split at its midpoint
+        mids = direction_draws(plan.directions_deg, scene.direction_range_deg)[0]
+        return np.unique(np.round(np.mod(np.concatenate([plan.directions_deg, mids]), 180.0), DIRECTION_DECIMALS))
+    # What the direction error may keep: the planned budget less the other axes' predicted
+    # shares after their halvings in this round (see axes_to_refine).
+    others = {"position": pos, "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+    other2 = sum((v / 3.0 ** chosen.count(a)) ** 2 for a, v in others.items())
+    target = math.sqrt(max((REFINE_BUDGET * scene.tolerance) ** 2 - other2, (0.25 * scene.tolerance) ** 2))
+    f40, f320 = model.base_frequencies_hz
+    colours = np.stack([tables.a40 / float(model.thresholds.np_(f40)),
+                        tables.a320 / float(model.thresholds.p(f320))], axis=1)  # [dir, colour, speed, j, i]
+    return split_directions(plan.directions_deg, colours, full_turn, lo, share, min(target, share / 3.0), max_nodes)
 
 
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
@@ -248,7 +285,8 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
     for attempt in range(MAX_REFINEMENTS + 1):
         tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache,
                               speed_midpoints=not plan.explicit_speeds)
-        stats = check_tables(surface, model, settings, tables, seed=seed + attempt)
+        stats = check_tables(surface, model, settings, tables, seed=seed + attempt,
+                             direction_range_deg=scene.direction_range_deg)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),
                         "spacing_mm": float(grid.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
@@ -267,15 +305,22 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
         def fits(factor: int) -> bool:  # tables `factor` times larger stay under the value cap
             return factor * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES
 
+        direction_done = False
         for axis in chosen + fallback:
             if refined and axis in fallback:
                 break
-            if axis == "direction" and not plan.explicit_directions and n_dir < 72 and fits(2):
-                lo, hi = scene.direction_range_deg
-                step = (180.0 if hi - lo >= 180 else hi - lo) / max(1, n_dir) / 2
-                plan.directions_deg = _direction_nodes(lo, hi, step)
-                n_dir = plan.directions_deg.size
-                refined = True
+            if axis == "direction" and direction_done:
+                continue  # all the halvings asked for are in one adaptive split
+            if axis == "direction" and not plan.explicit_directions and n_dir < MAX_DIRECTIONS // 2 and fits(2):
+                direction_done = True
+                # never more nodes than uniform halving would give
+                uniform = n_dir * 2 ** chosen.count("direction")
+                new_dirs = _refined_directions(plan, scene, model, tables, stats, chosen,
+                                               max_nodes=min(uniform, MAX_DIRECTIONS, MAX_TABLE_VALUES // (n_speed * n_nodes)))
+                if new_dirs.size > n_dir:
+                    plan.directions_deg = new_dirs
+                    n_dir = new_dirs.size
+                    refined = True
             elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
                 lo, hi = scene.speed_range_mm_s
                 ratio = (hi / lo) ** (1.0 / max(1, plan.speeds_mm_s.size - 1))

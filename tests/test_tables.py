@@ -239,6 +239,12 @@ def test_build_checked_tables_refines_until_the_tolerance_is_met():
     assert len(history) >= 2 and history[0]["rms_rel_error"] > 0.05
     assert history[-1]["directions"] > history[0]["directions"]
     assert stats["tolerance_met"] and stats["rms_rel_error"] <= 0.05
+    # The tone is at 80 |cos d| Hz: it sweeps through the band's low edge (10 Hz) within 7 deg
+    # of 90 deg, where the amplitudes change fastest; the added nodes go there.
+    d = plan.directions_deg
+    near_ridges = np.sum(np.abs(d - 90.0) <= 15.0)
+    across = np.sum(np.minimum(d, 180.0 - d) <= 15.0)
+    assert near_ridges >= 3 * across
 
 
 def test_tables_and_renderer_sample_the_same_surface(brownian_small):
