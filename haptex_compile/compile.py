@@ -154,14 +154,16 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         return grid.origin_mm + fi * grid.basis_mm[0] + fj * grid.basis_mm[1]
 
     mids, mid_p, node_dirs, node_p = direction_draws(dirs, direction_range_deg)
+    # Evenly spaced nodes draw uniformly (the same draws as before nodes could be uneven).
+    even = bool(np.allclose(mid_p, mid_p[0]) and np.allclose(node_p, node_p[0]))
 
     def mid_direction() -> float:
         if dirs.size == 1:
             return float(dirs[0] + rng.uniform(0, 180))
-        return float(mids[rng.choice(mids.size, p=mid_p)])
+        return float(mids[rng.integers(mids.size) if even else rng.choice(mids.size, p=mid_p)])
 
     def node_direction() -> float:
-        return float(node_dirs[rng.choice(node_dirs.size, p=node_p)])
+        return float(rng.choice(node_dirs) if even else node_dirs[rng.choice(node_dirs.size, p=node_p)])
 
     def mid_speed() -> float:
         if speeds.size == 1:
