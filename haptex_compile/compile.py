@@ -12,7 +12,7 @@ import numpy as np
 
 from haptex_compile.asset_writer import AssetContent, write_asset
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.direction_refinement import DIRECTION_DECIMALS, direction_draws, split_directions
+from haptex_compile.node_refinement import NODE_DECIMALS, direction_draws, speed_draws, split_directions, split_speeds
 from haptex_compile.errors import InputError
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
@@ -165,11 +165,19 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     def node_direction() -> float:
         return float(rng.choice(node_dirs) if even else node_dirs[rng.choice(node_dirs.size, p=node_p)])
 
+    if speeds.size > 1:
+        s_mids, s_mid_p, _, s_node_p = speed_draws(speeds)
+        even_s = bool(np.allclose(s_mid_p, s_mid_p[0]) and np.allclose(s_node_p[1:-1], s_node_p[1]))
+    else:
+        even_s = True
+
     def mid_speed() -> float:
         if speeds.size == 1:
             return float(speeds[0])
-        k = rng.integers(speeds.size - 1)
-        return float(np.sqrt(speeds[k] * speeds[k + 1]))
+        return float(s_mids[rng.integers(s_mids.size) if even_s else rng.choice(s_mids.size, p=s_mid_p)])
+
+    def node_speed() -> float:
+        return float(rng.choice(speeds) if even_s else speeds[rng.choice(speeds.size, p=s_node_p)])
 
     families: dict[str, list[tuple[float, float, float, float]]] = {"direction": [], "speed": [], "position": [], "stroke": []}
     points = []
@@ -178,7 +186,7 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
             p = random_position()
             # "stroke": every axis between nodes at once, as a random stroke meets them.
             d = mid_direction() if family in ("direction", "stroke") else node_direction()
-            s = mid_speed() if family in ("speed", "stroke") else float(rng.choice(speeds))
+            s = mid_speed() if family in ("speed", "stroke") else node_speed()
             points.append((family, p, s, d))
 
     def evaluate(point) -> tuple[float, float, float, float]:
@@ -250,30 +258,60 @@ def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
     return chosen or [max(share, key=lambda a: share[a])]
 
 
+def _axis_budget(stats: dict[str, Any], chosen: list[str], axis: str, tolerance: float) -> tuple[float, float]:
+    """(measured share, target share) of one axis's error for adaptive refinement.
+
+    The share is the axis's family error less the position error (in quadrature, as in
+    :func:`axes_to_refine`); the target is what the planned budget leaves after the other axes'
+    predicted shares (divided by 3 per halving chosen this round), at least a quarter of the
+    tolerance.
+    """
+    pos = stats["rms_rel_error_position"]
+    shares = {"position": pos,
+              "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
+              "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+    other2 = sum((v / 3.0 ** chosen.count(a)) ** 2 for a, v in shares.items() if a != axis)
+    target = math.sqrt(max((REFINE_BUDGET * tolerance) ** 2 - other2, (0.25 * tolerance) ** 2))
+    return shares[axis], target
+
+
+def _colours(model: TwoColourModel, tables: Tables) -> np.ndarray:
+    """The tables' colours in threshold units, [direction, colour, speed, j, i]."""
+    f40, f320 = model.base_frequencies_hz
+    return np.stack([tables.a40 / float(model.thresholds.np_(f40)),
+                     tables.a320 / float(model.thresholds.p(f320))], axis=1)
+
+
 def _refined_directions(plan: NodePlan, scene: Scene, model: TwoColourModel, tables: Tables, stats: dict[str, Any],
                         chosen: list[str], max_nodes: int) -> np.ndarray:
     """More direction nodes: the intervals with the largest predicted error are split
-    (:func:`~haptex_compile.direction_refinement.split_directions`) until the direction error
-    fits the budget the other axes leave (and is at least divided by 3); all of them (uniform
-    halving) when the measured direction error is no larger than the position error (nothing
-    to calibrate against)."""
+    (:func:`~haptex_compile.node_refinement.split_directions`) until the direction error fits
+    its budget (:func:`_axis_budget`); every interval is split when the measured direction error
+    is no larger than the position error (nothing to calibrate against)."""
     lo, hi = scene.direction_range_deg
     full_turn = hi - lo >= 180.0 - 1e-9
-    n_dir = plan.directions_deg.size
-    pos = stats["rms_rel_error_position"]
-    share = math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0))
-    if share <= 0.0 or n_dir < 3:  # every interval split at its midpoint
+    share, target = _axis_budget(stats, chosen, "direction", scene.tolerance)
+    if share <= 0.0 or plan.directions_deg.size < 3:  # every interval split at its midpoint
         mids = direction_draws(plan.directions_deg, scene.direction_range_deg)[0]
-        return np.unique(np.round(np.mod(np.concatenate([plan.directions_deg, mids]), 180.0), DIRECTION_DECIMALS))
-    # What the direction error may keep: the planned budget less the other axes' predicted
-    # shares after their halvings in this round (see axes_to_refine).
-    others = {"position": pos, "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
-    other2 = sum((v / 3.0 ** chosen.count(a)) ** 2 for a, v in others.items())
-    target = math.sqrt(max((REFINE_BUDGET * scene.tolerance) ** 2 - other2, (0.25 * scene.tolerance) ** 2))
-    f40, f320 = model.base_frequencies_hz
-    colours = np.stack([tables.a40 / float(model.thresholds.np_(f40)),
-                        tables.a320 / float(model.thresholds.p(f320))], axis=1)  # [dir, colour, speed, j, i]
-    return split_directions(plan.directions_deg, colours, full_turn, lo, share, min(target, share / 3.0), max_nodes)
+        return np.unique(np.round(np.mod(np.concatenate([plan.directions_deg, mids]), 180.0), NODE_DECIMALS))
+    return split_directions(plan.directions_deg, _colours(model, tables), full_turn, lo, share, target, max_nodes)
+
+
+def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables: Tables, stats: dict[str, Any],
+                    chosen: list[str], max_nodes: int) -> np.ndarray:
+    """More speed nodes, as :func:`_refined_directions` does for directions, in log-speed.
+
+    The curvature is read at the computed nodes (the stored cubic midpoints between them,
+    :func:`~haptex_compile.tables.speed_midpoints_of`, are left out)."""
+    speeds = np.asarray(plan.speeds_mm_s, dtype=float)
+    share, target = _axis_budget(stats, chosen, "speed", scene.tolerance)
+    if share <= 0.0 or speeds.size < 3:  # every interval split at its geometric midpoint
+        return np.unique(np.concatenate([speeds, np.round(np.sqrt(speeds[:-1] * speeds[1:]), NODE_DECIMALS)]))
+    stored = np.asarray(tables.speed_mm_s)
+    computed = np.searchsorted(stored, speeds)
+    computed = np.clip(computed, 0, stored.size - 1)
+    colours = np.swapaxes(np.moveaxis(_colours(model, tables)[:, :, computed], 2, 0), 1, 2)  # [speed, colour, dir, j, i]
+    return split_speeds(speeds, colours, share, target, max_nodes)
 
 
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
@@ -324,10 +362,9 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
                     n_dir = new_dirs.size
                     refined = True
             elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
-                lo, hi = scene.speed_range_mm_s
-                ratio = (hi / lo) ** (1.0 / max(1, plan.speeds_mm_s.size - 1))
-                plan.speeds_mm_s = _speed_nodes(lo, hi, math.sqrt(ratio))
-                n_speed = 2 * n_speed - 1
+                n_computed = plan.speeds_mm_s.size
+                plan.speeds_mm_s = _refined_speeds(plan, scene, model, tables, stats, chosen, max_nodes=2 * n_computed - 1)
+                n_speed = n_speed * (plan.speeds_mm_s.size - 1) // max(1, n_computed - 1)
                 refined = True
             elif (axis == "position" and not plan.explicit_spacing and grid.spacing_mm > 2 * surface.pixel_size_mm
                   and 4 * n_nodes <= MAX_TABLE_NODES and fits(4)):

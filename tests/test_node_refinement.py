@@ -1,4 +1,4 @@
-"""Adaptive direction nodes (haptex_compile.direction_refinement).
+"""Adaptive direction nodes (haptex_compile.node_refinement).
 
 Expected values are closed forms: linear interpolation of a smooth function misses its
 midpoint by h^2/8 |f''|; strokes in random directions meet an interval in proportion to its width.
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from haptex_compile.direction_refinement import direction_draws, midpoint_errors, split_directions
+from haptex_compile.node_refinement import direction_draws, midpoint_errors, speed_draws, split_directions, split_speeds
 
 
 def colours_of(f, dirs: np.ndarray) -> np.ndarray:
@@ -37,7 +37,7 @@ def true_interpolation_error(f, nodes: np.ndarray) -> float:
 
 def test_predicted_midpoint_error_is_that_of_linear_interpolation():
     nodes = np.arange(24) * 7.5
-    pred = midpoint_errors(nodes, colours_of(smooth, nodes), full_turn=True)
+    pred = midpoint_errors(nodes, colours_of(smooth, nodes), period=180.0)
     mids = nodes + 3.75
     actual = np.abs(0.5 * (smooth(nodes) + smooth(nodes + 7.5)) - smooth(mids)) / smooth(mids)
     # h^2/8 |f''| with f'' taken at the worse end node: the RMS over intervals within 15 %
@@ -83,3 +83,28 @@ def test_direction_draws_stay_inside_a_partial_range(rng_deg, dirs, expect_mids,
     mids, mid_p, nodes, node_p = direction_draws(np.array(dirs), rng_deg)
     assert np.allclose(mids, expect_mids) and np.allclose(mid_p, expect_p)
     assert np.isclose(node_p.sum(), 1.0) and set(nodes) == set(dirs)
+
+
+def test_speed_draws_weight_by_log_width():
+    mids, mid_p, nodes, node_p = speed_draws(np.array([10.0, 20.0, 80.0]))
+    assert np.allclose(mids, [np.sqrt(200.0), 40.0])  # geometric midpoints
+    assert np.allclose(mid_p, [1 / 3, 2 / 3])  # ln 2 and ln 4 of ln 8
+    assert np.allclose(node_p, [1 / 6, 1 / 2, 1 / 3])
+
+
+def test_speed_splits_go_to_a_resonance():
+    """Amplitudes peaked at 50 mm/s (a weave's tone crossing a threshold minimum) get the new
+    speed nodes, at geometric midpoints of the old ones."""
+    speeds = np.geomspace(10.0, 200.0, 15)
+
+    def resonance(s):
+        return 1.0 + 2.0 * np.exp(-np.abs(np.log(s / 50.0)) / 0.1)
+
+    share = 0.05
+    new = split_speeds(speeds, colours_of(resonance, speeds), measured_share=share, target_share=share / 3.0,
+                       max_nodes=29)
+    added = np.setdiff1d(new, speeds)
+    assert 0 < added.size < 14
+    assert np.all(np.abs(np.log(added / 50.0)) < np.log(2.0))  # within a factor 2 of the peak
+    ratio = np.log(new[1:] / new[:-1])
+    assert np.all(np.isin(np.round(ratio / ratio.max(), 6), [0.25, 0.5, 1.0]))  # nested halvings
