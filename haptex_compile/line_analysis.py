@@ -7,9 +7,9 @@ weights ``W_c(speed x k)`` into an analytic signal z, square its envelope, and a
 with the frame window along the line and the footprint Gaussian across the lines. Here:
 
 1. lines come from :class:`haptex_compile.line_sampling.LineSampler` (sheared, exact spline
-   values), their ends joined by removing the end-to-end ramp, and are Fourier transformed once
-   per group of speeds that need similar line lengths (the filter must settle within the line,
-   which takes longer at speed);
+   values) and are Fourier transformed once per group of speeds that need similar line lengths
+   (the filter must settle within the line, which takes longer at speed); their ends are
+   joined by removing the end-to-end ramp, on the transform;
 2. per speed and channel, ``|z|^2`` is formed from the weighted spectrum on just enough samples
    that its aliases miss the low frequencies kept in step 3 (``n_keep + K`` instead of
    ``2 n_keep``);
@@ -17,7 +17,8 @@ with the frame window along the line and the footprint Gaussian across the lines
    where the physical kernel (window along, Gaussian across) appears sheared; it is smooth on
    the footprint's scale, so only frequencies where it exceeds ``KERNEL_CUT`` are kept and
    transformed back onto a small grid (twice oversampled);
-4. the nodes read that grid with cubic B-spline interpolation.
+4. the nodes read that grid with cubic B-spline interpolation (one sparse matrix per group of
+   speeds reads all its grids).
 
 The kernel is the continuous one (Hann of full width 2 x frame convolved with the footprint
 Gaussian along, the footprint Gaussian across), of which the reference renderer's sampled
@@ -27,11 +28,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
+from scipy import sparse
 
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
 from haptex_compile.line_sampling import LineSampler
+from haptex_compile.surface import _bspline_weights
 
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
@@ -76,6 +78,22 @@ def _speed_groups(speeds: np.ndarray, settings: AnalysisSettings, span_mm: float
         else:
             groups.append([[int(i)], need])
     return [np.array(g[0]) for g in groups]
+
+
+def _bspline_matrix(y: np.ndarray, x: np.ndarray, ny: int, nx: int) -> sparse.csr_matrix:
+    """Sparse matrix reading a wrapping cubic B-spline coefficient grid ``[ny, nx]`` (flattened)
+    at points (y, x) in grid units: what ``ndimage.map_coordinates(c, [y, x], order=3,
+    mode="grid-wrap", prefilter=False)`` computes, shared by many grids."""
+    oy, ox = np.floor(y), np.floor(x)
+    wy = np.stack(_bspline_weights(y - oy), axis=1)  # [n, 4], taps o-1 .. o+2
+    wx = np.stack(_bspline_weights(x - ox), axis=1)
+    iy = (oy.astype(np.int64)[:, None] - 1 + np.arange(4)) % ny
+    ix = (ox.astype(np.int64)[:, None] - 1 + np.arange(4)) % nx
+    cols = (iy[:, :, None] * nx + ix[:, None, :]).reshape(-1, 16)
+    vals = (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
+    # 16 entries per row, in order (a repeated column, on grids under 4 wide, sums as it should)
+    indptr = np.arange(0, 16 * y.size + 1, 16)
+    return sparse.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(y.size, ny * nx))
 
 
 def direction_powers(
@@ -124,17 +142,19 @@ def direction_powers(
         n_g = min(n_cols, scipy.fft.next_fast_len(int(np.ceil(need / da)) + 2, real=True))
         c_lo = int(np.clip(np.floor(centre - n_g / 2), 0, n_cols - n_g))
         seg = lines[:, c_lo:c_lo + n_g]
-        # Join each line's ends (a linear trend is invisible to the weighting, which vanishes at
-        # 0 Hz) so the circular transform sees no step.
-        ramp = np.linspace(0.0, 1.0, n_g, dtype=np.float32)
-        first, last = seg[:, :1].copy(), seg[:, -1:].copy()
-        seg = seg - first
-        seg -= (last - first) * ramp
-        spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)
         length_mm = n_g * da
         k = scipy.fft.rfftfreq(n_g, d=da)
         n_res = int(np.searchsorted(k, RESOLVED_STOP * k_nyq_map)) + 1
-        res = resolution_weight(k, px)
+        keeps = [min(int(np.searchsorted(speeds[si] * k, model.band.high_stop_hz)), n_res, k.size) for si in group]
+        n_max = max(keeps)
+        # Join each line's ends (a linear trend is invisible to the weighting, which vanishes at
+        # 0 Hz) so the circular transform sees no step: the end-to-end ramp is removed from the
+        # transform, on the kept bins only (its constant part reaches the 0 Hz bin alone, which
+        # is dropped).
+        ramp_ft = scipy.fft.rfft(np.linspace(0.0, 1.0, n_g, dtype=np.float32))[:n_max]
+        spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)[:, :n_max]
+        spectrum -= (seg[:, -1:] - seg[:, :1]) * ramp_ft
+        res = resolution_weight(k[:n_max], px)
         kk = int(np.ceil(xi_cut * length_mm))
         kj = int(np.ceil(xi_cut * n_rows * px * (abs(frame.sin_d) + frame.cos_d)))
         kj = min(kj, (n_rows - 1) // 2)
@@ -150,14 +170,18 @@ def direction_powers(
         prefilter = 1.0 / (((4.0 + 2.0 * np.cos(2 * np.pi * mj / gj)) / 6.0)[:, None]
                            * ((4.0 + 2.0 * np.cos(2 * np.pi * np.arange(kk + 1) / gk)) / 6.0)[None, :])
         base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
-        coords = np.vstack([jf * gj / n_rows, (kf - c_lo) * gk / n_g])
-        for si in group:
+        # channel weights of every speed in the group from one call (the threshold curves'
+        # interpolation costs per call)
+        freqs = np.concatenate([speeds[si] * k[:n_keep] for si, n_keep in zip(group, keeps)])
+        wp_all, wnp_all = model.weights(freqs)
+        bounds = np.cumsum([0] + keeps)
+        coeffs = np.empty((len(group), 2, gj, gk), dtype=np.float32)
+        for gi, (si, n_keep) in enumerate(zip(group, keeps)):
             s = speeds[si]
-            n_keep = min(int(np.searchsorted(s * k, model.band.high_stop_hz)), n_res, k.size)
             n_out = scipy.fft.next_fast_len(n_keep + kk + 2)
             kernel = along_kernel_ft(xi_a, s, settings).astype(np.float32)[None, :] * base / np.float32(n_out)
-            wp, wnp = model.weights(s * k[:n_keep])
-            for ci, w in enumerate((wp, wnp)):
+            lo, hi = bounds[gi], bounds[gi + 1]
+            for ci, w in enumerate((wp_all[lo:hi], wnp_all[lo:hi])):
                 z = np.empty((n_rows, n_out), dtype=np.complex64)
                 np.multiply(spectrum[:, :n_keep], (2.0 * w * res[:n_keep] * n_out / n_g).astype(np.float32), out=z[:, :n_keep])
                 z[:, n_keep:] = 0.0
@@ -170,6 +194,9 @@ def direction_powers(
                 low *= kernel
                 grid = np.zeros((gj, gk // 2 + 1), dtype=np.complex64)
                 grid[rows_dst, :kk + 1] = low
-                coeffs = scipy.fft.irfft2(grid, s=(gj, gk))
-                out[si, ci] = ndimage.map_coordinates(coeffs, coords, order=3, mode="grid-wrap", prefilter=False)
+                coeffs[gi, ci] = scipy.fft.irfft2(grid, s=(gj, gk))
+        # every grid of the group read at the nodes at once (cubic B-spline, wrapping)
+        interp = _bspline_matrix(jf * gj / n_rows, (kf - c_lo) * gk / n_g, gj, gk)
+        values = interp @ coeffs.reshape(len(group) * 2, gj * gk).T  # [n_nodes, group x channel]
+        out[group] = values.T.reshape(len(group), 2, -1)
     return np.maximum(out, 0.0)
