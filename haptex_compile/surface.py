@@ -177,9 +177,14 @@ def sample_height(surface: Surface, u_mm: np.ndarray, v_mm: np.ndarray) -> np.nd
         Heights in µm, float64, same shape as the broadcast inputs.
     """
     c = spline_coefficients(surface)
-    x, y = pixel_coordinates(surface, u_mm, v_mm)
     # The cubic B-spline of the coefficients, extended periodically (wrapping maps) or by
     # whole-sample mirroring (period 2 (n - 1)), as ndimage's "grid-wrap" and "mirror" modes.
-    mode = "grid-wrap" if _wraps(surface) else "mirror"
+    wraps = _wraps(surface)
+    mode = "grid-wrap" if wraps else "mirror"
+    if wraps:  # the array is one period: "grid-wrap" reduces the coordinates itself
+        x, y = np.broadcast_arrays(np.asarray(u_mm, dtype=float) / surface.pixel_size_mm,
+                                   np.asarray(v_mm, dtype=float) / surface.pixel_size_mm)
+    else:
+        x, y = pixel_coordinates(surface, u_mm, v_mm)
     coords = np.vstack([np.ravel(y), np.ravel(x)])
     return ndimage.map_coordinates(c, coords, order=3, mode=mode, prefilter=False).reshape(x.shape)

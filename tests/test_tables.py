@@ -261,6 +261,23 @@ def test_tables_and_renderer_sample_the_same_surface(brownian_small):
     assert np.allclose(sample_height(brownian_small, u, v), scipy_h, atol=1e-9)
 
 
+def test_a_wrapping_surface_is_sampled_the_same_anywhere():
+    """A tile whose lattice is its array: heights at u + m t1 + n t2 equal those at u, and both
+    equal the spline read at the point moved into the reference cell."""
+    from scipy import ndimage
+
+    from haptex_compile.surface import pixel_coordinates, spline_coefficients
+
+    rng = np.random.default_rng(6)
+    surf = periodic_surface_from_tile(rng.standard_normal((50, 70)), 20.0)  # 1.4 x 1.0 mm
+    u, v = rng.uniform(-50, 50, 500), rng.uniform(-50, 50, 500)
+    x, y = pixel_coordinates(surf, u, v)
+    in_cell = ndimage.map_coordinates(spline_coefficients(surf), np.stack([y, x]), order=3, prefilter=False,
+                                      mode="grid-wrap")
+    assert np.allclose(sample_height(surf, u, v), in_cell, atol=1e-9)
+    assert np.allclose(sample_height(surf, u + 7 * 1.4, v - 3 * 1.0), sample_height(surf, u, v), atol=1e-9)
+
+
 def test_sheared_fast_path_agrees_with_rotated_lines_and_the_reference(brownian_small):
     """Both table algorithms evaluate the same definition: at nodes they agree with the
     reference renderer (and so with each other) to well within the 2 % default tolerance."""
