@@ -172,15 +172,19 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         basis, (rows, cols), image = lattice.basis_px, (ny, nx), tile.synthetic
         solved_on = f"the whole image ({nx} x {ny} px)"
     light_on = None
+    light_notes = []
     if light is None:
         light, light_on = _light_from_small_window(tile.tile, lattice.basis_px)
         if light is not None:
-            LOG.warning("%s: %s (on %s)", spec, estimated_light_note(light), light_on)
+            light_notes.append(f"{estimated_light_note(light)} (on {light_on})")
+            LOG.warning("%s: %s", spec, light_notes[-1])
     sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None)
     for w in sfs.warnings:
         LOG.warning("%s: %s", spec, w)
+    # The asset's report keeps every warning, the estimated light's included.
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
-                         "light_given": options.light is not None, "warnings": list(sfs.warnings), "solved_on": solved_on}
+                         "light_given": options.light is not None, "warnings": light_notes + list(sfs.warnings),
+                         "solved_on": solved_on}
     if light_on is not None:
         report["shading"]["light_estimated_on"] = light_on
     # Average the heights over the lattice as well, so the surface repeats exactly (a whole
