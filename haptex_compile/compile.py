@@ -345,11 +345,11 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
         def fits(factor: int) -> bool:  # tables `factor` times larger stay under the value cap
             return factor * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES
 
-        direction_done = False
+        direction_done = speed_done = False
         for axis in chosen + fallback:
             if refined and axis in fallback:
                 break
-            if axis == "direction" and direction_done:
+            if (axis == "direction" and direction_done) or (axis == "speed" and speed_done):
                 continue  # all the halvings asked for are in one adaptive split
             if axis == "direction" and not plan.explicit_directions and n_dir < MAX_DIRECTIONS // 2 and fits(2):
                 direction_done = True
@@ -362,8 +362,10 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
                     n_dir = new_dirs.size
                     refined = True
             elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
+                speed_done = True  # as for directions: every halving asked for in one split
                 n_computed = plan.speeds_mm_s.size
-                plan.speeds_mm_s = _refined_speeds(plan, scene, model, tables, stats, chosen, max_nodes=2 * n_computed - 1)
+                uniform = (n_computed - 1) * 2 ** chosen.count("speed") + 1
+                plan.speeds_mm_s = _refined_speeds(plan, scene, model, tables, stats, chosen, max_nodes=uniform)
                 n_speed = n_speed * (plan.speeds_mm_s.size - 1) // max(1, n_computed - 1)
                 refined = True
             elif (axis == "position" and not plan.explicit_spacing and grid.spacing_mm > 2 * surface.pixel_size_mm
