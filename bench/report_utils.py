@@ -80,7 +80,8 @@ def load_average() -> tuple[float, float, float]:
 def machine_facts(repo: Path) -> dict[str, Any]:
     """Date, git commit, CPU, cores, RAM, load, Python and package versions."""
     commit = _git(repo, "rev-parse", "HEAD") or "unknown (not a git checkout)"
-    dirty = _git(repo, "status", "--porcelain", "--untracked-files=no")
+    # the report and its plots are this run's own output, not changes to what was measured
+    dirty = _git(repo, "status", "--porcelain", "--untracked-files=no", "--", ".", ":!bench/REPORT.md", ":!bench/plots")
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "commit": commit,
