@@ -150,6 +150,8 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},
                             source_image=grey)
     tile = average_tile(flat, lattice)
+    explained = max(0.0, 1.0 - float(np.var(flat - tile.synthetic)) / (float(np.var(flat)) or 1.0))
+    report["lattice"]["tile_explained_variance"] = explained
     roughness = None
     if options.roughness != "none":
         est, rms_img = roughness_from_residual(flat - tile.synthetic, pixel_size_um=pixel_size_um)
@@ -195,6 +197,14 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     height = relief_scale(options, spec, height_rel, pixel_size_um, report)
     if roughness is not None:
         roughness["rms_um"] = float(np.std(height)) * rough_ratio
+        if rough_ratio > 1.0:
+            # Woven relief usually dominates its roughness; a residual larger than the pattern
+            # more often means the tile missed it (a skewed or stretched weave averages away).
+            roughness["warning"] = (
+                f"the repeating tile explains {explained:.1%} of the image's variance: the roughness from the"
+                f" residual is {rough_ratio:.1f} x the relief ({roughness['rms_um']:.3g} um RMS); check the lattice,"
+                " or use --roughness none")
+            LOG.warning("%s: %s", spec, roughness["warning"])
         if window is not None:
             rough = brownian_surface((rows, cols), roughness["hurst"], pixel_size_um=pixel_size_um, rms_um=roughness["rms_um"],
                                      seed=options.seed, periodic=True)

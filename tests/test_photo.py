@@ -77,3 +77,19 @@ def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
     y, x = np.mgrid[100:924:4, 100:924:4]
     height = heights_at_image_px(result, x.ravel(), y.ravel())
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.1
+
+
+def test_a_residual_larger_than_the_pattern_is_reported():
+    """White noise of 1.5 x the pattern's grey RMS: the tile explains about 1 / (1 + 1.5^2) of the
+    variance and the roughness scaled from the residual exceeds the relief, which is warned about;
+    without the noise the tile explains nearly all of it and nothing is said."""
+    t1, t2 = (18.3, 3.1), (-4.2, 15.7)
+    truth_um = lattice_relief((512, 512), t1, t2, amplitude_um=12.0)
+    clean = render_lambertian(truth_um, PIXEL_UM, Light(45.0, 200.0), 0.8)
+    noisy = clean + np.random.default_rng(3).normal(0.0, 1.5 * float(np.std(clean)), clean.shape)
+    options = SourceOptions(relief_um=10.0, light=(45.0, 200.0))
+    quiet = photo_surface(clean, PIXEL_UM, options, "clean", {}).report
+    loud = photo_surface(np.clip(noisy, 0.0, 1.0), PIXEL_UM, options, "noisy", {}).report
+    assert quiet["lattice"]["tile_explained_variance"] > 0.9 and "warning" not in quiet["roughness"]
+    assert abs(loud["lattice"]["tile_explained_variance"] - 1.0 / (1.0 + 1.5**2)) < 0.05
+    assert "explains" in loud["roughness"]["warning"] and loud["roughness"]["rms_um"] > 10.0
