@@ -118,7 +118,7 @@ def coherent_region(grey: np.ndarray, flat: np.ndarray, lattice, seed: int = 0) 
     """The central region of a photo over which to average the tile.
 
     Real fabrics are not exactly periodic over a whole photo: a weave that drifts by a fraction
-    of a cell across the image averages into a blurred tile (a plain-weave phone photo of 2000 px
+    of a cell across the image averages into a blurred tile (a plain-weave photo of 2000 px
     with 12 px cells: the tile explains 1.7 % of the image's variance over the whole image, 36 %
     over the central 1000 px, 58 % over 500 px). The lattice is found again on central squares of
     half the side, down to ``MIN_REGION_PX`` or 16 cells, and the tile averaged on each; the
