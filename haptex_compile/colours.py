@@ -118,10 +118,21 @@ class TwoColourModel:
         ip, inp = ip.reshape(-1), inp.reshape(-1)
         a40, a320, gamut = (np.empty(ip.size, dtype) for _ in range(3))
         m = self.matrix()
-        for lo in range(0, ip.size, DECOMPOSE_CHUNK):
+
+        def chunk(lo: int) -> None:
             hi = min(lo + DECOMPOSE_CHUNK, ip.size)
             a40[lo:hi], a320[lo:hi], gamut[lo:hi] = self._decompose_flat(m, ip[lo:hi].astype(dtype, copy=False),
                                                                          inp[lo:hi].astype(dtype, copy=False))
+
+        starts = range(0, ip.size, DECOMPOSE_CHUNK)
+        if len(starts) >= 4:  # whole tables: numpy's power releases the GIL, two threads use both cores
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=2) as pool:
+                list(pool.map(chunk, starts))
+        else:
+            for lo in starts:
+                chunk(lo)
         return Decomposition(a40=a40.reshape(shape), a320=a320.reshape(shape), out_of_gamut=gamut.reshape(shape))
 
     def _decompose_flat(self, m: np.ndarray, ip: np.ndarray, inp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

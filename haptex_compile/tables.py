@@ -313,17 +313,16 @@ def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tup
     new_speeds[0::2], new_speeds[1::2] = speeds, mids
 
     # The spline is linear in the data: its values at the midpoints are a fixed matrix times the
-    # node values, applied per direction as one matrix product.
+    # node values, applied to every direction as one batched matrix product.
     weights = CubicSpline(log_s, np.eye(speeds.size), axis=0)(np.log(mids))  # [n_mid, n_speed]
 
     def dense(x: np.ndarray) -> np.ndarray:
         out = np.empty(x.shape[:1] + (new_speeds.size,) + x.shape[2:], x.dtype)
         out[:, 0::2] = x
-        w = weights.astype(x.dtype)
-        for a in range(x.shape[0]):
-            mid = w @ x[a].reshape(speeds.size, -1)
-            # intensities are non-negative: a cubic undershoot is clamped
-            out[a, 1::2] = np.maximum(mid, 0, out=mid).reshape(out[a, 1::2].shape)
+        mid = np.matmul(weights.astype(x.dtype), x.reshape(x.shape[0], speeds.size, -1))
+        # intensities are non-negative: a cubic undershoot is clamped
+        np.maximum(mid, 0, out=mid)
+        out[:, 1::2] = mid.reshape((x.shape[0], speeds.size - 1) + x.shape[2:])
         return out
 
     return (new_speeds, *(dense(x) for x in intensities))
