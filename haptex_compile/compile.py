@@ -354,7 +354,7 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
             if axis == "direction" and not plan.explicit_directions and n_dir < MAX_DIRECTIONS // 2 and fits(2):
                 direction_done = True
                 # never more nodes than uniform halving would give
-                uniform = n_dir * 2 ** chosen.count("direction")
+                uniform = n_dir * 2 ** max(1, chosen.count("direction"))  # once when only a fallback
                 new_dirs = _refined_directions(plan, scene, model, tables, stats, chosen,
                                                max_nodes=min(uniform, MAX_DIRECTIONS, MAX_TABLE_VALUES // (n_speed * n_nodes)))
                 if new_dirs.size > n_dir:
@@ -364,7 +364,7 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
             elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
                 speed_done = True  # as for directions: every halving asked for in one split
                 n_computed = plan.speeds_mm_s.size
-                uniform = (n_computed - 1) * 2 ** chosen.count("speed") + 1
+                uniform = (n_computed - 1) * 2 ** max(1, chosen.count("speed")) + 1
                 plan.speeds_mm_s = _refined_speeds(plan, scene, model, tables, stats, chosen, max_nodes=uniform)
                 n_speed = n_speed * (plan.speeds_mm_s.size - 1) // max(1, n_computed - 1)
                 refined = True

@@ -247,6 +247,21 @@ def test_build_checked_tables_refines_until_the_tolerance_is_met():
     assert near_ridges >= 3 * across
 
 
+def test_refinement_falls_back_to_another_axis(monkeypatch):
+    """When the axis asked for cannot be refined (an explicit grid spacing), the others are:
+    directions are added (the speed list is explicit too)."""
+    import haptex_compile.compile as compile_mod
+
+    surf = grating(lambda_mm=1.0, amp_um=5.0)
+    scene = dataclasses.replace(default_scene(), tolerance=0.001, speeds_mm_s=(80.0,), grid_spacing_mm=0.25)
+    monkeypatch.setattr(compile_mod, "axes_to_refine", lambda stats, tol: ["position"])
+    monkeypatch.setattr(compile_mod, "MAX_REFINEMENTS", 1)
+    _, stats, plan = build_checked_tables(surf, MODEL, SETTINGS, scene, seed=0)
+    history = stats["refinements"]
+    assert len(history) == 2 and history[1]["directions"] > history[0]["directions"]
+    assert history[1]["spacing_mm"] == history[0]["spacing_mm"]
+
+
 def test_tables_and_renderer_sample_the_same_surface(brownian_small):
     """Both go through the same continuous (B-spline) surface: heights match scipy's evaluation."""
     from scipy import ndimage
