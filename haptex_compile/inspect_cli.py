@@ -60,6 +60,16 @@ def summary(path: str) -> str:
         f"  scene      {asset.n_contactors} contactors; {'default scene' if not asset.scene_text else 'scene file as given is stored'}",
         f"  file       {Path(path).stat().st_size / 1e6:.2f} MB",
     ]
+    photo_lattice = report.get("lattice")
+    if isinstance(photo_lattice, dict) and "tile_explained_variance" in photo_lattice:
+        where = "the photo's variance"
+        if "region_px" in photo_lattice:
+            x0, y0, w, h = photo_lattice["region_px"]
+            where = f"the variance of the central {w} x {h} px at ({x0}, {y0}), where it was averaged"
+        lines.append(f"  tile       explains {photo_lattice['tile_explained_variance']:.1%} of {where}")
+    rough = report.get("roughness")
+    if isinstance(rough, dict) and "warning" in rough:
+        lines.append(f"  warning    {rough['warning']}")
     if "out_of_gamut_fraction" in report:
         lines.append(f"  gamut      {report['out_of_gamut_fraction']:.1%} of table values out of gamut (max measure {report['out_of_gamut_max']:.3g})")
     for key in ("pixel_size", "relief", "surface"):

@@ -65,6 +65,13 @@ def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path):
     assert "cotton poplin" in str(report)
     warp, weft = (simulate_kes_smd(height, 20.0, d, periodic=False) for d in ("warp", "weft"))
     assert np.sqrt(warp * weft) == pytest.approx(np.sqrt(3.2 * 4.1), rel=0.05)
+    # The photo is exactly periodic: its averaged tile explains (nearly) all of it, and inspect says so.
+    import re
+
+    from haptex_compile.inspect_cli import summary
+
+    line = next(x for x in summary(str(out)).splitlines() if x.lstrip().startswith("tile"))
+    assert float(re.search(r"explains ([0-9.]+)% of the photo's variance", line).group(1)) > 95.0
 
 
 def test_compile_writes_a_valid_asset(asset):
