@@ -1,4 +1,4 @@
-"""Adaptive direction nodes (haptex_compile.node_refinement).
+"""Adaptive direction and speed nodes (haptex_compile.node_refinement).
 
 Expected values are closed forms: linear interpolation of a smooth function misses its
 midpoint by h^2/8 |f''|; strokes in random directions meet an interval in proportion to its width.
@@ -108,3 +108,16 @@ def test_speed_splits_go_to_a_resonance():
     assert np.all(np.abs(np.log(added / 50.0)) < np.log(2.0))  # within a factor 2 of the peak
     ratio = np.log(new[1:] / new[:-1])
     assert np.all(np.isin(np.round(ratio / ratio.max(), 6), [0.25, 0.5, 1.0]))  # nested halvings
+
+
+def test_a_partial_range_is_split_inside_it():
+    """Directions from 150 to 210 deg (nodes 150 ... 180 = 0 ... 30) with the peak at 0: new nodes
+    go next to it and never into the gap outside the range (30 to 150 deg)."""
+    nodes = np.array([0.0, 15.0, 30.0, 150.0, 165.0])
+    share = 0.05
+    new = split_directions(nodes, colours_of(peaked, nodes), False, 150.0, measured_share=share,
+                           target_share=share / 3.0, max_nodes=8)
+    added = np.setdiff1d(new, nodes)
+    assert added.size > 0
+    assert np.all((added < 30.0) | (added > 150.0))
+    assert np.any(np.isclose(added, 172.5) | np.isclose(added, 7.5))  # next to the peak
