@@ -12,7 +12,7 @@ import numpy as np
 
 from haptex_compile.asset_writer import AssetContent, write_asset
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.node_refinement import NODE_DECIMALS, direction_draws, speed_draws, split_directions, split_speeds
+from haptex_compile.node_refinement import direction_draws, speed_draws, split_directions, split_speeds
 from haptex_compile.errors import InputError
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
@@ -113,6 +113,19 @@ def _as_player_tables(tables: Tables, frame_ms: float):
                         frame_ms=frame_ms, periodic=g.periodic)
 
 
+def _threshold_scales(model: TwoColourModel) -> tuple[float, float]:
+    """Factors that put (a40, a320) in threshold units: 1 / T_np(40), 1 / T_p(320)."""
+    f40, f320 = model.base_frequencies_hz
+    return 1.0 / float(model.thresholds.np_(f40)), 1.0 / float(model.thresholds.p(f320))
+
+
+def _drawer(rng: np.random.Generator, values: np.ndarray, p: np.ndarray, uniform: bool) -> Callable[[], float]:
+    """A function drawing one of `values`, with probabilities `p` or, if `uniform`, evenly."""
+    if uniform:
+        return lambda: float(values[rng.integers(values.size)])
+    return lambda: float(values[rng.choice(values.size, p=p)])
+
+
 def relative_errors(model: TwoColourModel, a40_t, a320_t, a40_r, a320_r) -> np.ndarray:
     """Relative error of table amplitudes against reference ones, in threshold units.
 
@@ -120,9 +133,7 @@ def relative_errors(model: TwoColourModel, a40_t, a320_t, a40_r, a320_r) -> np.n
     so the two colours count as felt; error = |difference| / |reference| of that 2-vector
     (with a floor of 1 % of the reference level over all samples, so silence does not divide by 0).
     """
-    f40, f320 = model.base_frequencies_hz
-    s40 = 1.0 / float(model.thresholds.np_(f40))
-    s320 = 1.0 / float(model.thresholds.p(f320))
+    s40, s320 = _threshold_scales(model)
     diff = np.hypot((np.asarray(a40_t) - a40_r) * s40, (np.asarray(a320_t) - a320_r) * s320)
     ref = np.hypot(np.asarray(a40_r) * s40, np.asarray(a320_r) * s320)
     floor = 0.01 * float(np.sqrt(np.mean(ref**2))) + 1e-12
@@ -153,31 +164,21 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
         fi, fj = rng.uniform(0, ni - 1), rng.uniform(0, nj - 1)
         return grid.origin_mm + fi * grid.basis_mm[0] + fj * grid.basis_mm[1]
 
-    mids, mid_p, node_dirs, node_p = direction_draws(dirs, direction_range_deg)
     # Evenly spaced nodes draw uniformly (the same draws as before nodes could be uneven).
+    mids, mid_p, node_dirs, node_p = direction_draws(dirs, direction_range_deg)
     even = bool(np.allclose(mid_p, mid_p[0]) and np.allclose(node_p, node_p[0]))
-
-    def mid_direction() -> float:
-        if dirs.size == 1:
+    node_direction = _drawer(rng, node_dirs, node_p, even)
+    if dirs.size == 1:
+        def mid_direction() -> float:
             return float(dirs[0] + rng.uniform(0, 180))
-        return float(mids[rng.integers(mids.size) if even else rng.choice(mids.size, p=mid_p)])
-
-    def node_direction() -> float:
-        return float(rng.choice(node_dirs) if even else node_dirs[rng.choice(node_dirs.size, p=node_p)])
-
+    else:
+        mid_direction = _drawer(rng, mids, mid_p, even)
     if speeds.size > 1:
         s_mids, s_mid_p, _, s_node_p = speed_draws(speeds)
         even_s = bool(np.allclose(s_mid_p, s_mid_p[0]) and np.allclose(s_node_p[1:-1], s_node_p[1]))
+        mid_speed, node_speed = _drawer(rng, s_mids, s_mid_p, even_s), _drawer(rng, speeds, s_node_p, even_s)
     else:
-        even_s = True
-
-    def mid_speed() -> float:
-        if speeds.size == 1:
-            return float(speeds[0])
-        return float(s_mids[rng.integers(s_mids.size) if even_s else rng.choice(s_mids.size, p=s_mid_p)])
-
-    def node_speed() -> float:
-        return float(rng.choice(speeds) if even_s else speeds[rng.choice(speeds.size, p=s_node_p)])
+        mid_speed, node_speed = (lambda: float(speeds[0])), _drawer(rng, speeds, np.ones(1), True)
 
     families: dict[str, list[tuple[float, float, float, float]]] = {"direction": [], "speed": [], "position": [], "stroke": []}
     points = []
@@ -232,20 +233,25 @@ def rms_upper_bound(errors: np.ndarray, level: float = 0.95, seed: int = 0, n_bo
     return float(math.sqrt(max(mean - float(np.quantile(t, 1.0 - level)) * se, mean)))
 
 
+def _axis_shares(stats: dict[str, Any]) -> dict[str, float]:
+    """Each axis's own share of the measured error: the direction and speed families are at
+    random positions too, so the position family's error is taken out of theirs in quadrature."""
+    pos = stats["rms_rel_error_position"]
+    return {"position": pos,
+            "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
+            "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+
+
 def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
     """Which node axes to halve, and how often, so that the predicted RMS error falls below the tolerance.
 
-    The direction and speed families are also at random positions, so their errors include the
-    position family's; subtracting it in quadrature leaves each axis's own share. Halving a step
+    Each axis's own share of the error comes from :func:`_axis_shares`. Halving a step
     divides linear-interpolation error by about 4 (by 3 here, to be safe); the axis with the
     largest share is halved (at most ``MAX_HALVINGS_PER_ROUND`` times per round, so a first
     round far off the mark does not cost a round per halving) until the shares left add up (in
     quadrature) to 85 % of the tolerance. An axis appears in the list once per halving.
     """
-    pos = stats["rms_rel_error_position"]
-    share = {"position": pos,
-             "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
-             "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+    share = _axis_shares(stats)
     chosen: list[str] = []
     while math.sqrt(sum(v * v for v in share.values())) > REFINE_BUDGET * tolerance:
         # A share below a quarter of the tolerance is not worth doubling an axis for.
@@ -261,15 +267,11 @@ def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
 def _axis_budget(stats: dict[str, Any], chosen: list[str], axis: str, tolerance: float) -> tuple[float, float]:
     """(measured share, target share) of one axis's error for adaptive refinement.
 
-    The share is the axis's family error less the position error (in quadrature, as in
-    :func:`axes_to_refine`); the target is what the planned budget leaves after the other axes'
+    The share is the axis's own (:func:`_axis_shares`); the target is what the planned budget leaves after the other axes'
     predicted shares (divided by 3 per halving chosen this round), at least a quarter of the
     tolerance.
     """
-    pos = stats["rms_rel_error_position"]
-    shares = {"position": pos,
-              "direction": math.sqrt(max(stats["rms_rel_error_direction"] ** 2 - pos**2, 0.0)),
-              "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
+    shares = _axis_shares(stats)
     other2 = sum((v / 3.0 ** chosen.count(a)) ** 2 for a, v in shares.items() if a != axis)
     target = math.sqrt(max((REFINE_BUDGET * tolerance) ** 2 - other2, (0.25 * tolerance) ** 2))
     return shares[axis], target
@@ -277,24 +279,19 @@ def _axis_budget(stats: dict[str, Any], chosen: list[str], axis: str, tolerance:
 
 def _colours(model: TwoColourModel, tables: Tables) -> np.ndarray:
     """The tables' colours in threshold units, [direction, colour, speed, j, i]."""
-    f40, f320 = model.base_frequencies_hz
-    return np.stack([tables.a40 / float(model.thresholds.np_(f40)),
-                     tables.a320 / float(model.thresholds.p(f320))], axis=1)
+    s40, s320 = _threshold_scales(model)
+    return np.stack([tables.a40 * s40, tables.a320 * s320], axis=1)
 
 
 def _refined_directions(plan: NodePlan, scene: Scene, model: TwoColourModel, tables: Tables, stats: dict[str, Any],
                         chosen: list[str], max_nodes: int) -> np.ndarray:
     """More direction nodes: the intervals with the largest predicted error are split
     (:func:`~haptex_compile.node_refinement.split_directions`) until the direction error fits
-    its budget (:func:`_axis_budget`); every interval is split when the measured direction error
-    is no larger than the position error (nothing to calibrate against)."""
+    its budget (:func:`_axis_budget`)."""
     lo, hi = scene.direction_range_deg
-    full_turn = hi - lo >= 180.0 - 1e-9
     share, target = _axis_budget(stats, chosen, "direction", scene.tolerance)
-    if share <= 0.0 or plan.directions_deg.size < 3:  # every interval split at its midpoint
-        mids = direction_draws(plan.directions_deg, scene.direction_range_deg)[0]
-        return np.unique(np.round(np.mod(np.concatenate([plan.directions_deg, mids]), 180.0), NODE_DECIMALS))
-    return split_directions(plan.directions_deg, _colours(model, tables), full_turn, lo, share, target, max_nodes)
+    return split_directions(plan.directions_deg, _colours(model, tables), hi - lo >= 180.0 - 1e-9, lo, share, target,
+                            max_nodes)
 
 
 def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables: Tables, stats: dict[str, Any],
@@ -305,11 +302,7 @@ def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables:
     :func:`~haptex_compile.tables.speed_midpoints_of`, are left out)."""
     speeds = np.asarray(plan.speeds_mm_s, dtype=float)
     share, target = _axis_budget(stats, chosen, "speed", scene.tolerance)
-    if share <= 0.0 or speeds.size < 3:  # every interval split at its geometric midpoint
-        return np.unique(np.concatenate([speeds, np.round(np.sqrt(speeds[:-1] * speeds[1:]), NODE_DECIMALS)]))
-    stored = np.asarray(tables.speed_mm_s)
-    computed = np.searchsorted(stored, speeds)
-    computed = np.clip(computed, 0, stored.size - 1)
+    computed = np.searchsorted(tables.speed_mm_s, speeds)
     colours = np.swapaxes(np.moveaxis(_colours(model, tables)[:, :, computed], 2, 0), 1, 2)  # [speed, colour, dir, j, i]
     return split_speeds(speeds, colours, share, target, max_nodes)
 

@@ -167,7 +167,9 @@ def split_points(x: np.ndarray, colours: np.ndarray, period: float | None, measu
     Splitting an interval divides its error by `reduction` in each half (see
     ``SPLIT_REDUCTION``), and a half can be split again. Intervals are split, largest weighted
     error first, until the prediction reaches `target_share` or the node count `max_nodes`;
-    at least one is split. Without any curvature seen, every interval is split once.
+    at least one is split. Without any curvature seen, or nothing measured to calibrate it
+    against (`measured_share` 0: the axis is refined as a fallback), every interval is split
+    once, as uniform halving does.
 
     Returns
     -------
@@ -180,7 +182,7 @@ def split_points(x: np.ndarray, colours: np.ndarray, period: float | None, measu
     contrib = widths / widths.sum() * errs**2
     total = float(contrib.sum())
     scale = measured_share**2 / total if total > 0 else 0.0
-    if total <= 0 or not np.isfinite(scale):
+    if total <= 0 or measured_share <= 0 or not np.isfinite(scale):
         return x[: widths.size] + 0.5 * widths
     # heap of (-contribution, start, width); a split pushes its two halves
     heap = [(-float(c), float(a), float(w)) for c, a, w in zip(contrib, x, widths)]
