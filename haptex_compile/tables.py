@@ -36,7 +36,7 @@ from haptex_compile.frame_analysis import (
 )
 from haptex_compile.line_analysis import direction_powers, line_margin_mm
 from haptex_compile.line_sampling import LineSampler, supports
-from haptex_compile.surface import Surface, _wraps, pixel_coordinates, spline_coefficients
+from haptex_compile.surface import Surface, sample_height
 
 PREFETCH_HALF_NODES = 20_000  # half-spacing nodes read in advance up to this many (see build_tables)
 MAX_TABLE_NODES = 4_000_000  # per direction and speed; beyond this the grid is refused
@@ -137,16 +137,8 @@ def _direction_powers(
     n_b = int(np.ceil((b_nodes.max() + FOOTPRINT_TRUNCATION * sigma + 2 * px - b0) / px)) + 1
     a = a0 + np.arange(n_a) * px
     b = b0 + np.arange(n_b) * px
-    # Same continuous surface as sample_height (cubic B-spline), evaluated in C by scipy.
-    u = a[None, :] * e[0] + b[:, None] * nrm[0]
-    v = a[None, :] * e[1] + b[:, None] * nrm[1]
-    mode = "grid-wrap" if _wraps(surface) else "mirror"
-    if mode == "grid-wrap":  # the array is one period: scipy wraps indices itself
-        x, y = u / px, v / px
-    else:
-        x, y = pixel_coordinates(surface, u, v)
-    heights = ndimage.map_coordinates(spline_coefficients(surface), np.stack([y.ravel(), x.ravel()]), order=3,
-                                      prefilter=False, mode=mode).reshape(x.shape)
+    # The same continuous surface as the reference renderer samples.
+    heights = sample_height(surface, a[None, :] * e[0] + b[:, None] * nrm[0], a[None, :] * e[1] + b[:, None] * nrm[1])
     # Make each line's ends meet (remove the end-to-end ramp: a linear trend is invisible to the
     # weighting, which vanishes like f^2 at 0 Hz) so the circular transform sees no step.
     ramp = np.linspace(0.0, 1.0, n_a)
