@@ -37,7 +37,7 @@ from haptex_compile import tiles  # noqa: E402
 from haptex_compile.photo import heights_at_image_px, photo_surface  # noqa: E402
 from haptex_compile.shading import Light, normalised_height_error, render_lambertian  # noqa: E402
 from haptex_compile.sources import SourceOptions  # noqa: E402
-from haptex_compile.synth_images import lattice_relief, weave_image  # noqa: E402
+from haptex_compile.synth_images import lattice_relief, stretch_from_centre, weave_image  # noqa: E402
 
 PIXEL_UM = 20.0
 SIZE = 1024
@@ -84,17 +84,6 @@ def run(quick: bool = False) -> str:
     return "\n".join(rows) + "\n" + summary + "\n" + _drift_rows(quick)
 
 
-def _drifted(image: np.ndarray, drift_px: float) -> np.ndarray:
-    """The image stretched quadratically from its centre: `drift_px` of displacement at the edges."""
-    import cv2
-
-    n = image.shape[0]
-    y, x = np.mgrid[0:n, 0:n].astype(np.float32)
-    c, k = n / 2, drift_px / (n / 2) ** 2
-    mx, my = x + k * (x - c) * np.abs(x - c), y + k * (y - c) * np.abs(y - c)
-    return cv2.remap(image.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-
-
 def _drift_rows(quick: bool) -> str:
     """A weave that drifts across the photo: the tile averaged over the whole photo (baseline)
     against the central region where it repeats best (``photo.coherent_region``)."""
@@ -112,8 +101,8 @@ def _drift_rows(quick: bool) -> str:
             "| explained | error | s | error ratio region / whole |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for drift in ((0.0, 8.0) if quick else (0.0, 4.0, 8.0, 16.0)):
-        img = _drifted(image, drift)
-        seen = _drifted(truth, drift)
+        img = stretch_from_centre(image, drift)
+        seen = stretch_from_centre(truth, drift)
         out = []
         for tolerance in (0.0, photo.REGION_TOLERANCE):  # 0: the whole photo is always kept
             with mock.patch.object(photo, "REGION_TOLERANCE", tolerance):

@@ -20,6 +20,7 @@ __all__ = [
     "lattice_relief",
     "brownian_surface",
     "rotate_image",
+    "stretch_from_centre",
     "add_uneven_light",
     "add_stain",
     "add_slub",
@@ -196,6 +197,18 @@ def rotate_image(image: np.ndarray, angle_deg: float, out_shape: tuple[int, int]
     out = cv2.warpAffine(image.astype(np.float64), mat, (out_shape[1], out_shape[0]),
                          flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     return out, mat[:, :2].copy()
+
+
+def stretch_from_centre(image: np.ndarray, drift_px: float) -> np.ndarray:
+    """A square image stretched quadratically from its centre (cubic interpolation, float32):
+    output pixel x reads the input at ``x + k (x - c) |x - c|`` in each axis, ``drift_px`` of
+    displacement at the edges. A weave that drifts across a photo, as real ones do (the local
+    period grows by ``2 drift / (n / 2)`` towards the edges)."""
+    n = image.shape[0]
+    y, x = np.mgrid[0:n, 0:n].astype(np.float32)
+    c, k = n / 2, drift_px / (n / 2) ** 2
+    mx, my = x + k * (x - c) * np.abs(x - c), y + k * (y - c) * np.abs(y - c)
+    return cv2.remap(np.asarray(image, np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
 
 
 def add_uneven_light(image: np.ndarray, strength: float = 0.7) -> np.ndarray:
