@@ -163,7 +163,7 @@ def coherent_region(grey: np.ndarray, flat: np.ndarray, lattice, seed: int = 0) 
         side //= 2
     best = max(r["explained"] for r in regions)
     chosen = next(r for r in regions if r["explained"] >= REGION_TOLERANCE * best)
-    chosen["tried"] = [(r["box"][2] if r["box"][2] == r["box"][3] else max(r["box"][2:]), r["explained"]) for r in regions]
+    chosen["tried"] = [(max(r["box"][2:]), r["explained"]) for r in regions]
     return chosen
 
 
