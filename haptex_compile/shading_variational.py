@@ -31,7 +31,8 @@ little), and a converged coarse shape is what keeps the fine levels out of them 
 128 px tiles, slants 15-60°: the plain weave 0.03-0.12 with 6 coarse steps and a 24 px
 coarsest level, 0.03-0.08 with 20 steps down to 8 px).
 
-Albedo: refitted by least squares after each accepted step (on the finest level bounded below
+Albedo: refitted by least squares after each accepted step (optionally eliminated from the
+step itself by variable projection, ``albedo_projection``) (on the finest level bounded below
 by the 99.9th percentile of the valid pixels, since ``R <= 1``). The result is very sensitive
 to it: the mean brightness fixes the mean squared slope, so a 1 % albedo error can be absorbed
 as spurious roughness; for the same reason a wrong light of a few degrees costs a lot
@@ -177,6 +178,7 @@ class _Problem:
         vals = self.img[self.w > 0.5]
         self.albedo_min = float(np.percentile(vals, 99.9)) if vals.size else 0.0
         self.albedo_max = 1e3
+        self.project_albedo = False
         if gradient_data:
             w = self.w
             self.wx = w * np.roll(w, -1, axis=1)
@@ -338,6 +340,21 @@ class _Problem:
                 out += self.lowfreq(v)
             return out
 
+        wr = self.w * r
+        s_vp = float(np.vdot(wr, r))
+        if self.project_albedo and self._albedo_free(albedo) and s_vp > 0:
+            # Variable projection (Golub-Pereyra): the albedo, refitted after every step, is
+            # eliminated, so the step solves the Schur complement J^T W J - u u^T / s of the
+            # joint (height, albedo) Gauss-Newton system, with u = J^T W r and s = r^T W r:
+            # one step may trade slope against albedo, which alternating steps do slowly.
+            u_vp = (-(_dx(ja * wr) + _dy(jb * wr))).astype(_F)
+            base_matvec = matvec
+
+            def matvec(v):  # noqa: F811
+                out = base_matvec(v)
+                out -= u_vp * (float(np.vdot(u_vp, v)) / s_vp)
+                return out
+
         inv_sym = self.precond(rp, rq, albedo)
         b = -grad.astype(_F)
         x = np.zeros_like(b)
@@ -364,7 +381,10 @@ class _Problem:
         return x, grad
 
     def solve(self, z, albedo, n_gn, max_cg, tol, fit_albedo):
-        e = self.energy(z, albedo)
+        if self.project_albedo:
+            albedo, e = self.fit_albedo(z, albedo)
+        else:
+            e = self.energy(z, albedo)
         for _ in range(n_gn):
             dz, grad = self.gn_step(z, albedo, max_cg, tol)
             step = 1.0
@@ -372,7 +392,10 @@ class _Problem:
             for _ in range(8):  # backtracking: GN may overshoot where R is far from linear
                 zt = z + step * dz
                 rt = self.reflectance(zt)
-                et = self.energy(zt, albedo, rt)
+                if self.project_albedo:
+                    at, et = self.fit_albedo(zt, albedo, rt)
+                else:
+                    et = self.energy(zt, albedo, rt)
                 if np.isfinite(et) and et <= e:
                     accepted = True
                     break
@@ -380,9 +403,16 @@ class _Problem:
             if not accepted:
                 break
             z, e = zt, et
-            if fit_albedo:
+            if self.project_albedo:
+                albedo = at
+            elif fit_albedo:
                 albedo, e = self.fit_albedo(z, albedo, rt)
         return z, albedo
+
+    def _albedo_free(self, albedo: float) -> bool:
+        """The least-squares albedo is not held at one of its bounds."""
+        low = max(self.albedo_min, 1e-3)
+        return low * (1 + 1e-6) < albedo < self.albedo_max * (1 - 1e-6)
 
     def fit_albedo(self, z, albedo, r=None):
         if r is None:
@@ -448,6 +478,7 @@ def solve_variational(
     albedo_max: float = 1e3,
     dark: np.ndarray | None = None,
     bright: np.ndarray | None = None,
+    albedo_projection: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -504,6 +535,13 @@ def solve_variational(
         slopes across the light are penalised (along it, the linear shading term fixes them).
     lowfreq_cycles : float
         Cut-off of that penalty: a Gaussian low-pass at this many cycles per data region.
+    albedo_projection : bool
+        Eliminate the albedo from each Gauss-Newton step by variable projection (where it
+        is fitted and not held at a bound): the step solves for the height with the albedo
+        at its least-squares value for that height, so shape and albedo move together.
+        Measured with ``method="accurate"``'s iteration counts on the bench surfaces: random
+        bumps 0.014-0.029 -> 0.009-0.020, the sphere cap's a320 within 2 % at 15-45°
+        (instead of up to 28 %); with the default's few steps it is no better.
     dark, bright : ndarray, optional
         Weights of the censored pixels: black ones (attached shadows), which only say that
         ``albedo R <= DARK_LEVEL``, and saturated ones, ``albedo R >= BRIGHT_LEVEL``. Each
@@ -537,6 +575,7 @@ def solve_variational(
         if level > bound_max_level:
             prob.albedo_min = 0.0
         prob.albedo_max = max(albedo_max, prob.albedo_min)
+        prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level and not gradient_data
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = coarse_cg if level > 1 else fine_cg
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level)
