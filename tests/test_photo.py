@@ -51,6 +51,19 @@ def test_photo_of_a_periodic_relief_gives_back_the_relief(t1, t2, light):
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.05
 
 
+def test_accurate_solver_is_recorded_and_gives_back_the_relief():
+    # ``--sfs accurate`` reaches the photo pipeline and the report says which solver ran.
+    (t1, t2), light = LATTICES[0], (40, 60)
+    truth_um = lattice_relief((512, 512), t1, t2, amplitude_um=12.0)
+    image = render_lambertian(truth_um, PIXEL_UM, Light(*light), 0.8)
+    options = SourceOptions(light=light, roughness="none", relief_um=float(np.std(truth_um)), sfs="accurate")
+    result = photo_surface(image, PIXEL_UM, options, "rendered", {})
+    assert result.report["shading"]["method"] == "accurate"
+    y, x = np.mgrid[80:432:3, 80:432:3]
+    height = heights_at_image_px(result, x.ravel(), y.ravel())
+    assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.05
+
+
 def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
     # A 1024 px photo of a smooth relief on 21 x 16.5 px cells, lit at 30°, 200°: estimated on
     # a window of at most 256 px, the light comes back within a few degrees (estimated on the
