@@ -152,10 +152,14 @@ class TwoColourModel:
             scale = bo + 1e-12 * bo.max(axis=0) + 1e-300
             best_u = np.zeros((2, out.size))
             best_err = np.full(out.size, np.inf)
+            smin = scale.min(axis=0)
             for k in range(2):
-                r = m[:, k:k + 1] / scale  # model per unit u_k, relative
-                x = np.sum(r, axis=0) / np.sum(r * r, axis=0)
-                resid = np.sqrt(np.mean((r * x - 1.0) ** 2, axis=0))
+                # model per unit u_k relative to the intensities, r = m_k / scale, held as
+                # rn = r * smin (no overflow when one intensity is almost zero)
+                rn = m[:, k:k + 1] * (smin / scale)
+                x_n = np.sum(rn, axis=0) / np.sum(rn * rn, axis=0)
+                x = x_n * smin
+                resid = np.sqrt(np.mean((rn * x_n - 1.0) ** 2, axis=0))
                 take = resid < best_err
                 best_err = np.where(take, resid, best_err)
                 best_u[k] = np.where(take, x, best_u[k])
