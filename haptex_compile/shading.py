@@ -532,7 +532,7 @@ def estimated_light_note(light: Light) -> str:
         f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
         " versus dents, is resolved by assuming light from the top of the image; the ± is the"
         " width of the misfit's minimum and does not cover other minima: on low lattice reliefs"
-        " lit at 15-30° the search has settled 5-23° steeper, so give --light when it is known)"
+        " lit at 15-30° the search has settled 4-23° steeper, so give --light when it is known)"
     )
 
 
@@ -597,7 +597,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
         no normal comes within ``acos(ALIGN_COS)`` of the light), and at least 0.5° for the
         tilt. On the bench surfaces (noise-free) the errors are 0-5° in slant and 0-5° in
         tilt; see ``bench/bench_shading.py`` for the calibration. They are local: on smooth
-        lattice reliefs (RMS slope 0.16) lit at 15-30° the search settled 5-23° too steep
+        lattice reliefs (RMS slope 0.16) lit at 15-30° the search settled 4-23° too steep
         with ±2°, because the solver at the true light stops in a fold (misfit 3-10 times
         that of the steeper light with a higher albedo, though the true surface fits to
         1e-10).
