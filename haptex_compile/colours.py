@@ -104,13 +104,14 @@ class TwoColourModel:
         """2-norm condition number of :meth:`matrix`."""
         return float(np.linalg.cond(self.matrix()))
 
-    def decompose(self, intensity_p: np.ndarray, intensity_np: np.ndarray) -> "Decomposition":
+    def decompose(self, intensity_p: np.ndarray, intensity_np: np.ndarray, threads: int = 2) -> "Decomposition":
         """Amplitudes (a40, a320) in µm that give the channel intensities (dimensionless, x threshold).
 
         Vectorised over any shape; non-finite or negative intensities are treated as 0. Computed
         in float32 when both inputs are float32 (the tables: their values are stored as float32
         and the 2 x 2 system's condition number is far from costing the stored precision), else
-        in float64; large inputs go through in chunks so the temporaries stay in cache.
+        in float64; large inputs go through in chunks so the temporaries stay in cache, on
+        `threads` threads (callers that run several decompositions at once pass 1).
         """
         ip, inp = np.broadcast_arrays(np.asarray(intensity_p), np.asarray(intensity_np))
         dtype = np.float32 if ip.dtype == np.float32 and inp.dtype == np.float32 else np.float64
@@ -125,10 +126,10 @@ class TwoColourModel:
                                                                          inp[lo:hi].astype(dtype, copy=False))
 
         starts = range(0, ip.size, DECOMPOSE_CHUNK)
-        if len(starts) >= 4:  # whole tables: numpy's power releases the GIL, two threads use both cores
+        if threads > 1 and len(starts) >= 4:  # whole tables: numpy's power releases the GIL, two threads use both cores
             from concurrent.futures import ThreadPoolExecutor
 
-            with ThreadPoolExecutor(max_workers=2) as pool:
+            with ThreadPoolExecutor(max_workers=threads) as pool:
                 list(pool.map(chunk, starts))
         else:
             for lo in starts:
@@ -142,7 +143,13 @@ class TwoColourModel:
         for row, x in zip(b, (ip, inp)):
             np.maximum(np.where(np.isfinite(x), x, 0), 0, out=row)
             np.power(row, n, out=row)
-        u = (np.linalg.inv(m).astype(ip.dtype) @ b)
+        # The 2 x 2 solve written out: a BLAS call would wake BLAS's own threads, which spin
+        # beside the tables' threads that call this a direction at a time.
+        mi = np.linalg.inv(m).astype(ip.dtype)
+        u = np.empty_like(b)
+        for row, (c0, c1) in zip(u, mi):
+            np.multiply(b[0], c0, out=row)
+            row += c1 * b[1]
         gamut = np.zeros(ip.size, ip.dtype)
         # Outside the gamut (a negative component; all-zero intensities give u = 0, inside):
         # the nearest non-negative pair on either axis, in relative channel error.

@@ -1,6 +1,7 @@
 """The compiler's pipeline: source -> surface -> tables (error-controlled) -> asset."""
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -19,7 +20,8 @@ from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import Scene
 from haptex_compile.sources import SourceOptions, SourceResult, load_source
 from haptex_compile.surface import Surface
-from haptex_compile.tables import MAX_TABLE_NODES, Tables, build_tables, halve_grid, table_grid
+from haptex_compile.tables import (MAX_TABLE_NODES, TableGrid, Tables, build_tables, halve_grid, stored_speeds,
+                                   table_grid)
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
@@ -140,24 +142,34 @@ def relative_errors(model: TwoColourModel, a40_t, a320_t, a40_r, a320_r) -> np.n
     return diff / np.maximum(ref, floor)
 
 
-def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
-                 seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY,
-                 direction_range_deg: tuple[float, float] | None = None) -> dict[str, Any]:
-    """Measure table playback against the reference renderer at random points between nodes.
+CheckPoint = tuple[str, np.ndarray, float, float]  # (family, position (u, v) mm, speed mm/s, direction deg)
+CHECK_FAMILIES = ("direction", "speed", "position", "stroke")
 
-    Three families of samples isolate where the error comes from: directions halfway between
-    nodes, speeds halfway (geometric mean) between nodes, and random positions at node
-    directions and speeds; a fourth ("stroke") puts every axis between nodes at once. The union
-    gives the stored statistics. Direction nodes need not be evenly spaced: an interval is
-    drawn with a probability proportional to its width, and a node with half the width of its
-    two intervals, as strokes in random directions meet them. `direction_range_deg` (the
-    scene's range) keeps the intervals within a partial range; by default the nodes wrap
-    around the half turn.
+
+def check_points(direction_deg: np.ndarray, speed_mm_s: np.ndarray, grid: TableGrid, seed: int = 0,
+                 per_family: int = CHECK_SAMPLES_PER_FAMILY,
+                 direction_range_deg: tuple[float, float] | None = None) -> list[CheckPoint]:
+    """The random points at which :func:`check_tables` measures tables with these nodes.
+
+    They depend on the nodes only, not on the table values, so the reference amplitudes there
+    can be computed while the tables are built (:func:`build_checked_tables`).
+
+    Parameters
+    ----------
+    direction_deg, speed_mm_s : ndarray
+        The tables' direction and (stored) speed nodes.
+    grid : TableGrid
+        The tables' node grid.
+    seed, per_family, direction_range_deg
+        As for :func:`check_tables`.
+
+    Returns
+    -------
+    list of (family, position, speed, direction)
+        ``per_family`` points of each family in :data:`CHECK_FAMILIES`, in that order.
     """
     rng = np.random.default_rng(seed)
-    player = _as_player_tables(tables, settings.frame_ms)
-    grid = tables.grid
-    dirs, speeds = tables.direction_deg, tables.speed_mm_s
+    dirs, speeds = np.asarray(direction_deg, dtype=float), np.asarray(speed_mm_s, dtype=float)
     nj, ni = grid.shape
 
     def random_position() -> np.ndarray:
@@ -180,26 +192,33 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     else:
         mid_speed, node_speed = (lambda: float(speeds[0])), _drawer(rng, speeds, np.ones(1), True)
 
-    families: dict[str, list[tuple[float, float, float, float]]] = {"direction": [], "speed": [], "position": [], "stroke": []}
-    points = []
-    for family in families:
+    points: list[CheckPoint] = []
+    for family in CHECK_FAMILIES:
         for _ in range(per_family):
             p = random_position()
             # "stroke": every axis between nodes at once, as a random stroke meets them.
             d = mid_direction() if family in ("direction", "stroke") else node_direction()
             s = mid_speed() if family in ("speed", "stroke") else node_speed()
             points.append((family, p, s, d))
+    return points
 
-    def evaluate(point) -> tuple[float, float, float, float]:
-        _, p, s, d = point
-        ref = model.decompose(*point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0))
+
+def reference_amplitudes(surface: Surface, model: TwoColourModel, settings: AnalysisSettings,
+                         point: CheckPoint) -> tuple[float, float]:
+    """(a40, a320) of the reference renderer at one check point (a straight stroke through it)."""
+    _, p, s, d = point
+    ref = model.decompose(*point_intensities(surface, model, settings, straight_path(p[0], p[1], s, d), 0.0))
+    return float(ref.a40), float(ref.a320)
+
+
+def check_stats(model: TwoColourModel, settings: AnalysisSettings, tables: Tables, points: list[CheckPoint],
+                references: list[tuple[float, float]], seed: int = 0) -> dict[str, Any]:
+    """The error statistics of :func:`check_tables` from its points and their reference amplitudes."""
+    player = _as_player_tables(tables, settings.frame_ms)
+    families: dict[str, list[tuple[float, float, float, float]]] = {f: [] for f in CHECK_FAMILIES}
+    for (family, p, s, d), (r40, r320) in zip(points, references, strict=True):
         a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
-        return float(a40[0]), float(a320[0]), float(ref.a40), float(ref.a320)
-
-    # The reference renderer's FFTs release the GIL: two threads use both cores.
-    with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
-        for point, row in zip(points, pool.map(evaluate, points)):
-            families[point[0]].append(row)
+        families[family].append((float(a40[0]), float(a320[0]), r40, r320))
     stats: dict[str, Any] = {}
     all_rows = np.array([row for rows in families.values() for row in rows])
     errs = relative_errors(model, all_rows[:, 0], all_rows[:, 1], all_rows[:, 2], all_rows[:, 3])
@@ -214,6 +233,28 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     stats["p95_rel_error"] = float(np.quantile(errs, 0.95))
     stats["n_check_samples"] = int(errs.size)
     return stats
+
+
+def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
+                 seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY,
+                 direction_range_deg: tuple[float, float] | None = None) -> dict[str, Any]:
+    """Measure table playback against the reference renderer at random points between nodes.
+
+    Three families of samples isolate where the error comes from: directions halfway between
+    nodes, speeds halfway (geometric mean) between nodes, and random positions at node
+    directions and speeds; a fourth ("stroke") puts every axis between nodes at once. The union
+    gives the stored statistics. Direction nodes need not be evenly spaced: an interval is
+    drawn with a probability proportional to its width, and a node with half the width of its
+    two intervals, as strokes in random directions meet them. `direction_range_deg` (the
+    scene's range) keeps the intervals within a partial range; by default the nodes wrap
+    around the half turn. The steps are :func:`check_points`, :func:`reference_amplitudes`
+    and :func:`check_stats`.
+    """
+    points = check_points(tables.direction_deg, tables.speed_mm_s, tables.grid, seed, per_family, direction_range_deg)
+    # The reference renderer's FFTs release the GIL: two threads use both cores.
+    with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
+        references = list(pool.map(functools.partial(reference_amplitudes, surface, model, settings), points))
+    return check_stats(model, settings, tables, points, references, seed=seed)
 
 
 def rms_upper_bound(errors: np.ndarray, level: float = 0.95, seed: int = 0, n_boot: int = 2000) -> float:
@@ -309,17 +350,38 @@ def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables:
 
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
                          seed: int = 0, progress: Callable[[str], None] | None = None) -> tuple[Tables, dict[str, Any], NodePlan]:
-    """Build tables, measure their error and refine nodes until the scene's tolerance is met."""
+    """Build tables, measure their error and refine nodes until the scene's tolerance is met.
+
+    Each round's check (:func:`check_tables`) draws its points from the nodes alone, so their
+    reference amplitudes are queued on the same two threads right behind the round's
+    directions and computed while the tables are assembled.
+    """
+    with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
+        return _build_checked_tables(surface, model, settings, scene, seed, progress, pool)
+
+
+def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
+                          seed: int, progress: Callable[[str], None] | None,
+                          pool: ThreadPoolExecutor) -> tuple[Tables, dict[str, Any], NodePlan]:
     plan = initial_plan(scene, surface)
     tol = scene.tolerance
     history = []
     cache: dict = {}
     grid = table_grid(surface, plan.spacing_mm)
+    reference = functools.partial(reference_amplitudes, surface, model, settings)
     for attempt in range(MAX_REFINEMENTS + 1):
+        stored = stored_speeds(plan.speeds_mm_s, not plan.explicit_speeds)
+        points = check_points(plan.directions_deg, stored, grid, seed + attempt,
+                              direction_range_deg=scene.direction_range_deg)
+        pending: list = []
+
+        def queue_references(points: list[CheckPoint] = points, pending: list = pending) -> None:
+            pending.extend(pool.submit(reference, p) for p in points)
+
         tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache,
-                              speed_midpoints=not plan.explicit_speeds)
-        stats = check_tables(surface, model, settings, tables, seed=seed + attempt,
-                             direction_range_deg=scene.direction_range_deg)
+                              speed_midpoints=not plan.explicit_speeds, pool=pool, after_submit=queue_references)
+        assert np.array_equal(tables.speed_mm_s, stored), "check points drawn for other speed nodes"
+        stats = check_stats(model, settings, tables, points, [f.result() for f in pending], seed=seed + attempt)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),
                         "spacing_mm": float(grid.spacing_mm), "rms_rel_error": stats["rms_rel_error"],

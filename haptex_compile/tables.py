@@ -18,8 +18,9 @@ reverses), so directions are stored over [0, 180).
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import scipy.fft
@@ -211,6 +212,8 @@ def build_tables(
     workers: int = 2,
     cache: dict | None = None,
     speed_midpoints: bool = False,
+    pool: Executor | None = None,
+    after_submit: Callable[[], None] | None = None,
 ) -> Tables:
     """Compute the amplitude tables on `grid` for every direction and speed node.
 
@@ -224,12 +227,17 @@ def build_tables(
         Speed nodes (mm/s), positive, strictly increasing.
     grid : TableGrid
     workers : int
-        Directions computed in parallel threads.
+        Directions computed in parallel threads (without `pool`).
     cache : dict, optional
         Channel powers already computed, keyed by grid, direction and speed; filled in, so
         refining the nodes (or halving the grid, see :func:`halve_grid`) only computes new ones.
     speed_midpoints : bool
         Also store cubic midpoints between the speed nodes (:func:`speed_midpoints_of`).
+    pool : Executor, optional
+        Runs the directions instead of a pool of `workers` threads of its own.
+    after_submit : callable, optional
+        Called once every direction is queued on `pool`: work it queues there runs behind the
+        directions (and on a core the last of them leaves idle).
     """
     directions = np.asarray(directions_deg, dtype=float)
     speeds = np.asarray(speeds_mm_s, dtype=float)
@@ -256,32 +264,106 @@ def build_tables(
             hit = None if finer is None else finer[:, ::2, ::2]
         return hit
 
-    def one(d: float) -> None:
-        missing = np.array([s for s in speeds if lookup(d, s) is None])
-        if missing.size == 0:
-            return
-        target = half if half is not None else grid
-        nodes = target.nodes_mm().reshape(-1, 2)
-        if sampler is not None:
-            powers = direction_powers(sampler, model, settings, nodes, d, missing)
-        else:
-            powers = _direction_powers(surface, model, settings, nodes, d, missing)
-        for s, pw in zip(missing, powers):
-            cache[key(target, d, s)] = pw.reshape((2,) + target.shape).astype(np.float32, copy=False)
+    stored = stored_speeds(speeds, speed_midpoints)
+    weights = _midpoint_weights(speeds) if stored.size > speeds.size else None
+    shape = (directions.size, stored.size) + grid.shape
+    ip, inp, a40, a320, gamut = (np.empty(shape, np.float32) for _ in range(5))
 
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        list(pool.map(one, directions))
-    shape = (directions.size, speeds.size) + grid.shape
-    ip, inp = np.empty(shape, np.float32), np.empty(shape, np.float32)
-    for a, d in enumerate(directions):
+    def one(a: int, d: float) -> None:
+        """Direction `a`: its missing powers, then its whole slice of the tables (assembled here,
+        on the pool's threads, rather than for all directions after them)."""
+        missing = np.array([s for s in speeds if lookup(d, s) is None])
+        if missing.size:
+            target = half if half is not None else grid
+            nodes = target.nodes_mm().reshape(-1, 2)
+            if sampler is not None:
+                powers = direction_powers(sampler, model, settings, nodes, d, missing)
+            else:
+                powers = _direction_powers(surface, model, settings, nodes, d, missing)
+            for s, pw in zip(missing, powers):
+                cache[key(target, d, s)] = pw.reshape((2,) + target.shape).astype(np.float32, copy=False)
+        computed = (1, speeds.size) + grid.shape
+        p, q = np.empty(computed, np.float32), np.empty(computed, np.float32)
         for b, s in enumerate(speeds):
             power = lookup(d, s)
-            np.sqrt(power[0], out=ip[a, b])
-            np.sqrt(power[1], out=inp[a, b])
-    if speed_midpoints:
-        speeds, ip, inp = speed_midpoints_of(speeds, ip, inp)
-    dec = model.decompose(ip, inp)
-    return Tables(dec.a40, dec.a320, ip, inp, dec.out_of_gamut, directions, speeds, grid)
+            np.sqrt(power[0], out=p[0, b])
+            np.sqrt(power[1], out=q[0, b])
+        if weights is not None:
+            p, q = _insert_midpoints(weights, p), _insert_midpoints(weights, q)
+        ip[a], inp[a] = p[0], q[0]
+        # elementwise, so a direction at a time gives the same values as the whole tables
+        dec = model.decompose(ip[a], inp[a], threads=1)
+        a40[a], a320[a], gamut[a] = dec.a40, dec.a320, dec.out_of_gamut
+
+    if pool is None:
+        with ThreadPoolExecutor(max_workers=max(1, workers)) as own:
+            list(own.map(one, range(directions.size), directions))
+    else:
+        futures = [pool.submit(one, a, d) for a, d in enumerate(directions)]
+        if after_submit is not None:
+            after_submit()
+        for f in futures:
+            f.result()
+    return Tables(a40, a320, ip, inp, gamut, directions, stored, grid)
+
+
+def stored_speeds(speeds_mm_s: np.ndarray, speed_midpoints: bool) -> np.ndarray:
+    """The speed nodes :func:`build_tables` stores for these computed ones: with
+    `speed_midpoints` (and at least four nodes) the geometric midpoints are inserted."""
+    speeds = np.asarray(speeds_mm_s, dtype=float)
+    if not speed_midpoints or speeds.size < 4:
+        return speeds
+    new_speeds = np.empty(2 * speeds.size - 1)
+    new_speeds[0::2], new_speeds[1::2] = speeds, np.sqrt(speeds[:-1] * speeds[1:])
+    return new_speeds
+
+
+def not_a_knot_weights(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Weights [n_t, n_x] giving the not-a-knot cubic spline through nodes `x` at points `t`.
+
+    ``not_a_knot_weights(x, t) @ y`` is ``scipy.interpolate.CubicSpline(x, y)(t)`` (to
+    rounding): the same slope equations, solved for all data at once. Here so the compiler does
+    not import ``scipy.interpolate`` (a fifth of a second at start-up) for one small matrix.
+
+    Parameters
+    ----------
+    x : ndarray [n_x]
+        Strictly increasing nodes, at least four.
+    t : ndarray [n_t]
+        Points within ``[x[0], x[-1]]`` (the end cubics extend beyond).
+    """
+    x = np.asarray(x, dtype=float)
+    t = np.asarray(t, dtype=float)
+    n = x.size
+    if n < 4:
+        raise ValueError("a not-a-knot spline here needs at least four nodes")
+    dx = np.diff(x)
+    # chord slopes as a matrix on the data: slope_i = (y[i+1] - y[i]) / dx[i]
+    chord = np.zeros((n - 1, n))
+    rows = np.arange(n - 1)
+    chord[rows, rows], chord[rows, rows + 1] = -1.0 / dx, 1.0 / dx
+    # node slopes m solve A m = rhs @ y: continuous curvature inside, not-a-knot at both ends
+    a, rhs = np.zeros((n, n)), np.zeros((n, n))
+    i = np.arange(1, n - 1)
+    a[i, i - 1], a[i, i], a[i, i + 1] = dx[i], 2.0 * (dx[i - 1] + dx[i]), dx[i - 1]
+    rhs[i] = 3.0 * (dx[i, None] * chord[i - 1] + dx[i - 1, None] * chord[i])
+    d = x[2] - x[0]
+    a[0, 0], a[0, 1] = dx[1], d
+    rhs[0] = ((dx[0] + 2.0 * d) * dx[1] * chord[0] + dx[0] ** 2 * chord[1]) / d
+    d = x[-1] - x[-3]
+    a[-1, -1], a[-1, -2] = dx[-2], d
+    rhs[-1] = (dx[-1] ** 2 * chord[-2] + (2.0 * d + dx[-1]) * dx[-2] * chord[-1]) / d
+    slopes = np.linalg.solve(a, rhs)  # [node, datum]
+    # cubic Hermite form on each interval
+    k = np.clip(np.searchsorted(x, t, side="right") - 1, 0, n - 2)
+    h = dx[k]
+    s = (t - x[k]) / h
+    s2, s3 = s * s, s * s * s
+    w = ((s3 - 2.0 * s2 + s) * h)[:, None] * slopes[k] + ((s3 - s2) * h)[:, None] * slopes[k + 1]
+    at = np.arange(t.size)
+    w[at, k] += 2.0 * s3 - 3.0 * s2 + 1.0
+    w[at, k + 1] += 3.0 * s2 - 2.0 * s3
+    return w
 
 
 def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -294,30 +376,32 @@ def speed_midpoints_of(speeds_mm_s: np.ndarray, *intensities: np.ndarray) -> tup
     halves the playback error between speed nodes for the cost of storage only. Needs at least
     four speed nodes; fewer are returned unchanged.
     """
-    from scipy.interpolate import CubicSpline
-
     speeds = np.asarray(speeds_mm_s, dtype=float)
     if speeds.size < 4:
         return (speeds, *intensities)
+    weights = _midpoint_weights(speeds)
+    return (stored_speeds(speeds, True), *(_insert_midpoints(weights, x) for x in intensities))
+
+
+def _midpoint_weights(speeds: np.ndarray) -> np.ndarray:
+    """[n_mid, n_speed]: the spline in log-speed is linear in the data, so its values at the
+    geometric midpoints are a fixed matrix times the node values."""
     log_s = np.log(speeds)
-    mids = np.sqrt(speeds[:-1] * speeds[1:])
-    new_speeds = np.empty(2 * speeds.size - 1)
-    new_speeds[0::2], new_speeds[1::2] = speeds, mids
+    return not_a_knot_weights(log_s, np.log(stored_speeds(speeds, True)[1::2]))
 
-    # The spline is linear in the data: its values at the midpoints are a fixed matrix times the
-    # node values, applied to every direction as one batched matrix product.
-    weights = CubicSpline(log_s, np.eye(speeds.size), axis=0)(np.log(mids))  # [n_mid, n_speed]
 
-    def dense(x: np.ndarray) -> np.ndarray:
-        out = np.empty(x.shape[:1] + (new_speeds.size,) + x.shape[2:], x.dtype)
-        out[:, 0::2] = x
-        mid = np.matmul(weights.astype(x.dtype), x.reshape(x.shape[0], speeds.size, -1))
-        # intensities are non-negative: a cubic undershoot is clamped
-        np.maximum(mid, 0, out=mid)
-        out[:, 1::2] = mid.reshape((x.shape[0], speeds.size - 1) + x.shape[2:])
-        return out
-
-    return (new_speeds, *(dense(x) for x in intensities))
+def _insert_midpoints(weights: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Intensities [n_dir, n_speed, ...] with the spline's values (:func:`_midpoint_weights`)
+    inserted between speed nodes, every direction in one batched product."""
+    n_dir, n_speed = x.shape[:2]
+    out = np.empty((n_dir, 2 * n_speed - 1) + x.shape[2:], x.dtype)
+    out[:, 0::2] = x
+    # einsum, not BLAS: this runs on the tables' threads, beside which BLAS's own would spin
+    mid = np.einsum("ms,dsk->dmk", weights.astype(x.dtype), x.reshape(n_dir, n_speed, -1))
+    # intensities are non-negative: a cubic undershoot is clamped
+    np.maximum(mid, 0, out=mid)
+    out[:, 1::2] = mid.reshape((n_dir, n_speed - 1) + x.shape[2:])
+    return out
 
 
 def mean_tactile(height_um: np.ndarray, pixel_size_um: float, *, periodic: bool = False,
