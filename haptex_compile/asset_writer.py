@@ -23,7 +23,7 @@ Layout (public contract; ``schemas/asset.schema.json``; read by :mod:`playback.a
 
 Writes are atomic (temporary file in the same folder, then rename) and deterministic
 (no timestamps: ``track_times=False``; fixed compression settings; table chunks are deflated on
-two threads and written raw, see :func:`_table_dataset`).
+two threads, while the rest is written, and written raw, see :func:`_table_dataset`).
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ import json
 import os
 import tempfile
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -110,10 +110,21 @@ def _table_dataset(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Datas
     deflated here and written as they are (``write_direct_chunk``). Readers see an ordinary
     shuffle + gzip dataset. Edge chunks are padded with zeros, the fill value, as HDF5 does.
     """
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return _write_table(group, name, _deflated_table(data, pool))
+
+
+DeflatedTable = tuple[tuple[int, ...], tuple[int, ...], list[tuple[tuple[int, ...], Future]]]  # shape, chunks, parts
+
+
+def _deflated_table(data: np.ndarray, pool: Executor) -> DeflatedTable:
+    """Start shuffling and deflating a table's chunks on `pool` (see :func:`_table_dataset`).
+
+    Returns the table's shape, its chunk shape and each chunk's start with the future of its
+    compressed bytes, for :func:`_write_table`.
+    """
     data = np.ascontiguousarray(data, dtype=np.float32)
     chunks = _table_chunks(data.shape)
-    dset = group.create_dataset(name, shape=data.shape, dtype=data.dtype, chunks=chunks, compression="gzip",
-                                compression_opts=TABLE_GZIP_LEVEL, shuffle=True, track_times=False)
     starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
 
     def deflate(start: tuple[int, ...]) -> bytes:
@@ -123,9 +134,16 @@ def _table_dataset(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Datas
         shuffled = block.view(np.uint8).reshape(-1, data.itemsize).T  # byte planes, as HDF5's shuffle filter
         return zlib.compress(np.ascontiguousarray(shuffled).tobytes(), TABLE_GZIP_LEVEL)
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        for start, payload in zip(starts, pool.map(deflate, starts)):
-            dset.id.write_direct_chunk(start, payload)
+    return data.shape, chunks, [(start, pool.submit(deflate, start)) for start in starts]
+
+
+def _write_table(group: h5py.Group, name: str, table: DeflatedTable) -> h5py.Dataset:
+    """The dataset of a table from :func:`_deflated_table`, its chunks written as they are ready."""
+    shape, chunks, parts = table
+    dset = group.create_dataset(name, shape=shape, dtype=np.float32, chunks=chunks, compression="gzip",
+                                compression_opts=TABLE_GZIP_LEVEL, shuffle=True, track_times=False)
+    for start, payload in parts:
+        dset.id.write_direct_chunk(start, payload.result())
     return dset
 
 
@@ -155,6 +173,14 @@ def write_asset(path: str | Path, content: AssetContent) -> None:
 
 
 def _fill(f: h5py.File, c: AssetContent) -> None:
+    # The tables' chunks (most of the work) are deflated on two threads while the rest is written.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tables = {name: _deflated_table(round_mantissa(getattr(c.tables, name)), pool)
+                  for name in ("a40", "a320", "out_of_gamut")}
+        _fill_groups(f, c, tables)
+
+
+def _fill_groups(f: h5py.File, c: AssetContent, tables: dict[str, DeflatedTable]) -> None:
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["generator"] = f"haptex {__version__}"
@@ -209,11 +235,11 @@ def _fill(f: h5py.File, c: AssetContent) -> None:
 
     t = f.create_group("tables")
     tab = c.tables
-    _table_dataset(t, "a40", round_mantissa(tab.a40))
-    _table_dataset(t, "a320", round_mantissa(tab.a320))
+    _write_table(t, "a40", tables["a40"])
+    _write_table(t, "a320", tables["a320"])
     _dataset(t, "direction_deg", np.asarray(tab.direction_deg, dtype=np.float64))
     _dataset(t, "speed_mm_s", np.asarray(tab.speed_mm_s, dtype=np.float64))
-    _table_dataset(t, "out_of_gamut", round_mantissa(tab.out_of_gamut))
+    _write_table(t, "out_of_gamut", tables["out_of_gamut"])
     t.attrs["frame_ms"] = float(c.settings.frame_ms)
     t.attrs["periodic"] = bool(tab.grid.periodic)
     t.attrs["origin_mm"] = np.asarray(tab.grid.origin_mm, dtype=np.float64)

@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import click
@@ -110,6 +109,8 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
                   "exr_direction": exr_direction, "debug": debug} for s, o in zip(inputs, outs)]
     failures = []
     if jobs > 1 and len(jobs_list) > 1:
+        from concurrent.futures import ProcessPoolExecutor  # here: multiprocessing costs start-up time
+
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             results = list(pool.map(_one, jobs_list))
     else:
