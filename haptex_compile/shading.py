@@ -828,7 +828,7 @@ def shape_from_shading(
         term, coarse to fine, FFT-preconditioned conjugate gradients, albedo fitted by least
         squares and bounded below by the brightest pixels (see
         :mod:`haptex_compile.shading_variational`); ``"accurate"``: the same with more
-        iterations and the albedo eliminated by variable projection, about 3.5 x slower
+        iterations and the albedo eliminated by variable projection, about 4 x slower
         (measured on the bench surfaces, light given, slants 15-60°: normalised height
         errors 0.002-0.04 instead of 0.01-0.13, except the Brownian surface at 15°; see
         ``bench/bench_shading.py``); ``"tsai-shah"``: :func:`tsai_shah`, for
