@@ -80,20 +80,26 @@ def _speed_groups(speeds: np.ndarray, settings: AnalysisSettings, span_mm: float
     return [np.array(g[0]) for g in groups]
 
 
-def _bspline_matrix(y: np.ndarray, x: np.ndarray, ny: int, nx: int) -> sparse.csr_matrix:
+def _bspline_taps(x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices and weights [n_points, 4] of a wrapping cubic B-spline on `n` knots at points `x`
+    (grid units): taps floor(x) - 1 .. floor(x) + 2."""
+    o = np.floor(x)
+    return (o.astype(np.int64)[:, None] - 1 + np.arange(4)) % n, np.stack(_bspline_weights(x - o), axis=1)
+
+
+def _bspline_matrix(y: np.ndarray | tuple[np.ndarray, np.ndarray], x: np.ndarray, ny: int, nx: int) -> sparse.csr_matrix:
     """Sparse matrix reading a wrapping cubic B-spline coefficient grid ``[ny, nx]`` (flattened)
     at points (y, x) in grid units: what ``ndimage.map_coordinates(c, [y, x], order=3,
-    mode="grid-wrap", prefilter=False)`` computes, shared by many grids."""
-    oy, ox = np.floor(y), np.floor(x)
-    wy = np.stack(_bspline_weights(y - oy), axis=1)  # [n, 4], taps o-1 .. o+2
-    wx = np.stack(_bspline_weights(x - ox), axis=1)
-    iy = (oy.astype(np.int64)[:, None] - 1 + np.arange(4)) % ny
-    ix = (ox.astype(np.int64)[:, None] - 1 + np.arange(4)) % nx
+    mode="grid-wrap", prefilter=False)`` computes, shared by many grids. `y` may be given as
+    its taps (:func:`_bspline_taps`), when many matrices share it."""
+    iy, wy = _bspline_taps(y, ny) if isinstance(y, np.ndarray) else y
+    ix, wx = _bspline_taps(x, nx)
     cols = (iy[:, :, None] * nx + ix[:, None, :]).reshape(-1, 16)
     vals = (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
     # 16 entries per row, in order (a repeated column, on grids under 4 wide, sums as it should)
-    indptr = np.arange(0, 16 * y.size + 1, 16)
-    return sparse.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(y.size, ny * nx))
+    n = ix.shape[0]
+    indptr = np.arange(0, 16 * n + 1, 16)
+    return sparse.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(n, ny * nx))
 
 
 def direction_powers(
@@ -137,22 +143,32 @@ def direction_powers(
     centre = 0.5 * (kf.min() + kf.max())
     span = (kf.max() - kf.min()) * da
     out = np.empty((speeds.size, 2, nodes_mm.shape[0]), np.float32)
+    taps_j: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # the nodes' row taps, per grid height
+    groups = []
     for group in _speed_groups(speeds, settings, span, px):
         need = span + 2 * line_margin_mm(speeds[group].max(), settings, px)
         n_g = min(n_cols, scipy.fft.next_fast_len(int(np.ceil(need / da)) + 2, real=True))
-        c_lo = int(np.clip(np.floor(centre - n_g / 2), 0, n_cols - n_g))
-        seg = lines[:, c_lo:c_lo + n_g]
-        length_mm = n_g * da
         k = scipy.fft.rfftfreq(n_g, d=da)
         n_res = int(np.searchsorted(k, RESOLVED_STOP * k_nyq_map)) + 1
         keeps = [min(int(np.searchsorted(speeds[si] * k, model.band.high_stop_hz)), n_res, k.size) for si in group]
+        groups.append((group, n_g, k, keeps))
+    # channel weights of every speed from one call (the threshold curves' interpolation costs per call)
+    wp_all, wnp_all = model.weights(np.concatenate([speeds[si] * k[:n_keep] for group, _, k, keeps in groups
+                                                    for si, n_keep in zip(group, keeps)]))
+    offset = 0
+    for group, n_g, k, keeps in groups:
+        c_lo = int(np.clip(np.floor(centre - n_g / 2), 0, n_cols - n_g))
+        seg = lines[:, c_lo:c_lo + n_g]
+        length_mm = n_g * da
         n_max = max(keeps)
         # Join each line's ends (a linear trend is invisible to the weighting, which vanishes at
         # 0 Hz) so the circular transform sees no step: the end-to-end ramp is removed from the
         # transform, on the kept bins only (its constant part reaches the 0 Hz bin alone, which
         # is dropped).
         ramp_ft = scipy.fft.rfft(np.linspace(0.0, 1.0, n_g, dtype=np.float32))[:n_max]
-        spectrum = scipy.fft.rfft(seg, axis=1, workers=workers)[:, :n_max]
+        # the kept bins in an array of their own, which every pass reads (the whole transform,
+        # several times larger, is freed at once)
+        spectrum = np.ascontiguousarray(scipy.fft.rfft(seg, axis=1, workers=workers)[:, :n_max])
         spectrum -= (seg[:, -1:] - seg[:, :1]) * ramp_ft
         res = resolution_weight(k[:n_max], px)
         kk = int(np.ceil(xi_cut * length_mm))
@@ -170,19 +186,17 @@ def direction_powers(
         prefilter = 1.0 / (((4.0 + 2.0 * np.cos(2 * np.pi * mj / gj)) / 6.0)[:, None]
                            * ((4.0 + 2.0 * np.cos(2 * np.pi * np.arange(kk + 1) / gk)) / 6.0)[None, :])
         base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
-        # channel weights of every speed in the group from one call (the threshold curves'
-        # interpolation costs per call)
-        freqs = np.concatenate([speeds[si] * k[:n_keep] for si, n_keep in zip(group, keeps)])
-        wp_all, wnp_all = model.weights(freqs)
-        bounds = np.cumsum([0] + keeps)
+        bounds = offset + np.cumsum([0] + keeps)
+        offset = int(bounds[-1])
         coeffs = np.empty((len(group), 2, gj, gk), dtype=np.float32)
-        for gi, (si, n_keep) in enumerate(zip(group, keeps)):
+        n_outs = [scipy.fft.next_fast_len(n_keep + kk + 2) for n_keep in keeps]
+        zbuf = np.empty(n_rows * max(n_outs), dtype=np.complex64)  # reused by every pass (transformed in place)
+        for gi, (si, n_keep, n_out) in enumerate(zip(group, keeps, n_outs)):
             s = speeds[si]
-            n_out = scipy.fft.next_fast_len(n_keep + kk + 2)
             kernel = along_kernel_ft(xi_a, s, settings).astype(np.float32)[None, :] * base / np.float32(n_out)
             lo, hi = bounds[gi], bounds[gi + 1]
             for ci, w in enumerate((wp_all[lo:hi], wnp_all[lo:hi])):
-                z = np.empty((n_rows, n_out), dtype=np.complex64)
+                z = zbuf[:n_rows * n_out].reshape(n_rows, n_out)
                 np.multiply(spectrum[:, :n_keep], (2.0 * w * res[:n_keep] * n_out / n_g).astype(np.float32), out=z[:, :n_keep])
                 z[:, n_keep:] = 0.0
                 z[:, 0] = 0.0
@@ -196,7 +210,9 @@ def direction_powers(
                 grid[rows_dst, :kk + 1] = low
                 coeffs[gi, ci] = scipy.fft.irfft2(grid, s=(gj, gk))
         # every grid of the group read at the nodes at once (cubic B-spline, wrapping)
-        interp = _bspline_matrix(jf * gj / n_rows, (kf - c_lo) * gk / n_g, gj, gk)
+        if gj not in taps_j:
+            taps_j[gj] = _bspline_taps(jf * gj / n_rows, gj)
+        interp = _bspline_matrix(taps_j[gj], (kf - c_lo) * gk / n_g, gj, gk)
         values = interp @ coeffs.reshape(len(group) * 2, gj * gk).T  # [n_nodes, group x channel]
         out[group] = values.T.reshape(len(group), 2, -1)
     return np.maximum(out, 0.0)

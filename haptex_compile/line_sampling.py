@@ -26,6 +26,9 @@ from numpy.lib.stride_tricks import sliding_window_view
 from haptex_compile.surface import Surface, _bspline_weights, _wraps, spline_coefficients
 
 
+SAMPLE_BLOCK_COLUMNS = 256  # columns sampled at a time (see LineSampler.sample)
+
+
 def supports(surface: Surface) -> bool:
     """Whether the surface's extension is periodic on its coefficient array (fast path)."""
     return (not surface.periodic) or _wraps(surface)
@@ -165,14 +168,16 @@ class LineSampler:
         w = np.stack(_bspline_weights(s - o)).astype(np.float32)  # [4, n_cols], taps o-1..o+2
         start = (o.astype(np.int64) - 1) % period_rows
         cols = xi.astype(np.int64) % period_cols
-        out = np.empty((n_cols, n_rows), dtype=np.float32)
+        out = np.empty((n_rows, n_cols), dtype=np.float32)
         for is_half in (False, True):
             sel = np.nonzero(half == is_half)[0]
-            if sel.size == 0:
-                continue
-            table = self._column_table(frame.transposed, is_half)
-            blocks = sliding_window_view(table, n_rows + 3, axis=1)[cols[sel], start[sel]]  # [n_sel, n_rows + 3]
-            ws = w[:, sel, None]
-            out[sel] = ws[0] * blocks[:, 0:n_rows] + ws[1] * blocks[:, 1:n_rows + 1] \
-                + ws[2] * blocks[:, 2:n_rows + 2] + ws[3] * blocks[:, 3:n_rows + 3]
-        return np.ascontiguousarray(out.T)
+            windows = sliding_window_view(self._column_table(frame.transposed, is_half), n_rows + 3, axis=1)
+            # a few hundred columns at a time: the gathered runs and their weighted sum stay in
+            # cache until they are written, transposed, as rows
+            for b0 in range(0, sel.size, SAMPLE_BLOCK_COLUMNS):
+                part = sel[b0:b0 + SAMPLE_BLOCK_COLUMNS]
+                blocks = windows[cols[part], start[part]]  # [n_part, n_rows + 3]
+                ws = w[:, part, None]
+                out[:, part] = (ws[0] * blocks[:, 0:n_rows] + ws[1] * blocks[:, 1:n_rows + 1]
+                                + ws[2] * blocks[:, 2:n_rows + 2] + ws[3] * blocks[:, 3:n_rows + 3]).T
+        return out
