@@ -91,7 +91,9 @@ class ThresholdCurves:
             near = np.abs(r) < 9.0
             rn = r[near]
             ramp[near] = rn * _norm_cdf(rn) + np.exp(-0.5 * rn * rn) / np.sqrt(2 * np.pi)
-            db = db + (ramp @ (jumps * sigma)).reshape(x.shape)
+            # einsum, not a BLAS product: BLAS would wake its own threads for this (thousands of
+            # frequencies x tens of corners), which then spin beside the callers' threads
+            db = db + np.einsum("ij,j->i", ramp, jumps * sigma).reshape(x.shape)
         with np.errstate(over="ignore"):
             out = np.power(10.0, db / 20.0)
         return np.where(positive, out, np.inf)
