@@ -212,9 +212,12 @@ def reference_amplitudes(surface: Surface, model: TwoColourModel, settings: Anal
 
 
 def check_stats(model: TwoColourModel, settings: AnalysisSettings, tables: Tables, points: list[CheckPoint],
-                references: list[tuple[float, float]], seed: int = 0) -> dict[str, Any]:
-    """The error statistics of :func:`check_tables` from its points and their reference amplitudes."""
-    player = _as_player_tables(tables, settings.frame_ms)
+                references: list[tuple[float, float]], seed: int = 0, player: Any = None) -> dict[str, Any]:
+    """The error statistics of :func:`check_tables` from its points and their reference amplitudes.
+
+    `player` is the tables as the player reads them (:func:`_as_player_tables`), if already made.
+    """
+    player = _as_player_tables(tables, settings.frame_ms) if player is None else player
     families: dict[str, list[tuple[float, float, float, float]]] = {f: [] for f in CHECK_FAMILIES}
     for (family, p, s, d), (r40, r320) in zip(points, references, strict=True):
         a40, a320, _ = player.interpolator(np.array([p[0]]), np.array([p[1]]), np.array([s]), np.array([d]))
@@ -381,7 +384,11 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
         tables = build_tables(surface, model, settings, plan.directions_deg, plan.speeds_mm_s, grid, cache=cache,
                               speed_midpoints=not plan.explicit_speeds, pool=pool, after_submit=queue_references)
         assert np.array_equal(tables.speed_mm_s, stored), "check points drawn for other speed nodes"
-        stats = check_stats(model, settings, tables, points, [f.result() for f in pending], seed=seed + attempt)
+        # The player's interpolator copies the whole tables: made here, while the references finish.
+        player = _as_player_tables(tables, settings.frame_ms)
+        player.interpolator
+        stats = check_stats(model, settings, tables, points, [f.result() for f in pending], seed=seed + attempt,
+                            player=player)
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),
                         "spacing_mm": float(grid.spacing_mm), "rms_rel_error": stats["rms_rel_error"],

@@ -20,6 +20,7 @@ from importlib import resources
 import numpy as np
 
 SMOOTHING_HZ = 8.0  # width (Hz) over which each corner of a threshold curve is rounded
+RAMP_CHUNK = 1024  # frequencies whose corner ramps are evaluated together
 
 
 def _norm_cdf(r: np.ndarray) -> np.ndarray:
@@ -85,15 +86,20 @@ class ThresholdCurves:
         jumps = jumps[jumps != 0.0]
         if inner.size:
             sigma = np.clip(SMOOTHING_HZ / (2.0**inner * np.log(2.0)), 0.005, 0.3)
-            r = (x.reshape(-1, 1) - inner) / sigma  # [n, nodes]
-            # A rounded ramp r Phi(r) + phi(r); beyond 9 sigma it is the bare ramp to double precision.
-            ramp = np.maximum(r, 0.0)
-            near = np.abs(r) < 9.0
-            rn = r[near]
-            ramp[near] = rn * _norm_cdf(rn) + np.exp(-0.5 * rn * rn) / np.sqrt(2 * np.pi)
-            # einsum, not a BLAS product: BLAS would wake its own threads for this (thousands of
-            # frequencies x tens of corners), which then spin beside the callers' threads
-            db = db + np.einsum("ij,j->i", ramp, jumps * sigma).reshape(x.shape)
+            xs = x.reshape(-1)
+            ramps = np.empty(xs.size)
+            # a chunk of frequencies at a time: the [frequency, corner] arrays stay in cache
+            for lo in range(0, xs.size, RAMP_CHUNK):
+                r = (xs[lo:lo + RAMP_CHUNK, None] - inner) / sigma  # [n, nodes]
+                # A rounded ramp r Phi(r) + phi(r); beyond 9 sigma it is the bare ramp to double precision.
+                ramp = np.maximum(r, 0.0)
+                near = np.abs(r) < 9.0
+                rn = r[near]
+                ramp[near] = rn * _norm_cdf(rn) + np.exp(-0.5 * rn * rn) / np.sqrt(2 * np.pi)
+                # einsum, not a BLAS product: BLAS would wake its own threads for this (thousands
+                # of frequencies x tens of corners), which then spin beside the callers' threads
+                ramps[lo:lo + RAMP_CHUNK] = np.einsum("ij,j->i", ramp, jumps * sigma)
+            db = db + ramps.reshape(x.shape)
         with np.errstate(over="ignore"):
             out = np.power(10.0, db / 20.0)
         return np.where(positive, out, np.inf)
