@@ -190,6 +190,34 @@ def test_build_checked_tables_meets_the_tolerance_and_stores_stats(brownian_tile
     assert fresh["rms_rel_error"] <= 2.0 * max(stats["rms_rel_error"], 0.01)
 
 
+def test_build_checked_tables_stores_what_check_tables_measures(brownian_tile):
+    """The compiler renders each round's check references while it builds the tables; the stored
+    statistics are still exactly those of :func:`check_tables` on the final tables (same seed)."""
+    scene = dataclasses.replace(default_scene(), tolerance=0.05, speed_range_mm_s=(30.0, 120.0))
+    tables, stats, _ = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
+    last = len(stats["refinements"]) - 1
+    again = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=2 + last, direction_range_deg=scene.direction_range_deg)
+    for key, value in again.items():
+        assert stats[key] == value, key
+
+
+def test_tables_from_a_shared_pool_equal_their_own(brownian_tile):
+    """build_tables on a caller's pool (with work queued behind its directions) gives the same
+    tables as on its own threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    grid = table_grid(brownian_tile, 0.25)
+    dirs, speeds = np.arange(6) * 30.0, np.geomspace(20.0, 160.0, 5)
+    own = build_tables(brownian_tile, MODEL, SETTINGS, dirs, speeds, grid, speed_midpoints=True)
+    queued = []
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        shared = build_tables(brownian_tile, MODEL, SETTINGS, dirs, speeds, grid, speed_midpoints=True, pool=pool,
+                              after_submit=lambda: queued.append(pool.submit(lambda: 42)))
+    assert queued[0].result() == 42
+    for name in ("a40", "a320", "intensity_p", "intensity_np", "out_of_gamut", "speed_mm_s"):
+        assert np.array_equal(getattr(own, name), getattr(shared, name)), name
+
+
 def test_rms_upper_bound_covers_the_true_rms_95_percent_of_the_time():
     # 64 half-normal errors of RMS 1 %: the true RMS is below the bound in 95 % of samples
     # (binomial SD over 400 samples: 1.1 %).
@@ -314,6 +342,19 @@ def test_sheared_fast_path_agrees_with_rotated_lines_and_the_reference(brownian_
     fast_err, slow_err = np.array(fast_err), np.array(slow_err)
     assert np.sqrt(np.mean(fast_err**2)) < 0.01 and fast_err.max() < 0.04
     assert np.sqrt(np.mean(slow_err**2)) < 0.015
+
+
+def test_not_a_knot_weights_are_scipys_cubic_spline():
+    from scipy.interpolate import CubicSpline
+
+    from haptex_compile.tables import not_a_knot_weights
+
+    rng = np.random.default_rng(2)
+    for n in (4, 5, 9, 22):
+        x = np.sort(rng.uniform(0.0, 3.0, n)) + np.arange(n) * 0.05  # uneven, strictly increasing
+        t = np.concatenate([rng.uniform(x[0] - 0.2, x[-1] + 0.2, 30), x])
+        want = CubicSpline(x, np.eye(n), axis=0)(t)
+        assert np.allclose(not_a_knot_weights(x, t), want, rtol=0, atol=1e-12)
 
 
 def test_speed_midpoints_are_the_log_speed_cubic_spline_through_the_nodes():
