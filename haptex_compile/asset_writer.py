@@ -128,11 +128,14 @@ def _deflated_table(data: np.ndarray, pool: Executor) -> DeflatedTable:
     starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
 
     def deflate(start: tuple[int, ...]) -> bytes:
-        block = np.zeros(chunks, data.dtype)
         src = tuple(slice(o, min(o + c, n)) for o, c, n in zip(start, chunks, data.shape))
-        block[tuple(slice(0, s.stop - s.start) for s in src)] = data[src]
-        shuffled = block.view(np.uint8).reshape(-1, data.itemsize).T  # byte planes, as HDF5's shuffle filter
-        return zlib.compress(np.ascontiguousarray(shuffled).tobytes(), TABLE_GZIP_LEVEL)
+        if all(s.stop - s.start == c for s, c in zip(src, chunks)):
+            block = data[src]  # whole chunk: read in place
+        else:
+            block = np.zeros(chunks, data.dtype)
+            block[tuple(slice(0, s.stop - s.start) for s in src)] = data[src]
+        shuffled = np.ascontiguousarray(block).view(np.uint8).reshape(-1, data.itemsize).T  # byte planes, as HDF5's shuffle filter
+        return zlib.compress(np.ascontiguousarray(shuffled), TABLE_GZIP_LEVEL)
 
     return data.shape, chunks, [(start, pool.submit(deflate, start)) for start in starts]
 
