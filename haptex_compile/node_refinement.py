@@ -130,18 +130,19 @@ def midpoint_errors(x: np.ndarray, colours: np.ndarray, period: float | None = N
     n = x.size
     if n < 3:
         return np.zeros(widths.size)
+    # differences to the next node, by slicing (the tables are large: no index gathers)
     if period is not None:
-        prev, nxt = np.roll(np.arange(n), 1), np.roll(np.arange(n), -1)
+        step = np.roll(f, -1, axis=0) - f  # f[k + 1] - f[k], wrapping
         h1 = np.roll(widths, 1)  # width of the interval ending at node k
         h2 = widths  # width of the interval starting at node k
-        interior = np.arange(n)
+        after, before = step, np.roll(step, 1, axis=0)
     else:
-        interior = np.arange(1, n - 1)
-        prev, nxt = interior - 1, interior + 1
+        step = f[1:] - f[:-1]
         h1, h2 = widths[:-1], widths[1:]
+        after, before = step[1:], step[:-1]
     shape = (-1,) + (1,) * (f.ndim - 1)
-    slope2 = (f[nxt] - f[interior]) / h2.reshape(shape)
-    slope1 = (f[interior] - f[prev]) / h1.reshape(shape)
+    slope2 = after / h2.reshape(shape)
+    slope1 = before / h1.reshape(shape)
     curvature = 2.0 * (slope2 - slope1) / (h1 + h2).reshape(shape)  # f'' at the interior nodes
     curv2 = np.sum(curvature**2, axis=1)  # |f''|^2 over the two colours, per point
     if period is None:  # the end nodes take their neighbour's curvature
