@@ -32,7 +32,7 @@ from haptex_compile.colours import TwoColourModel
 from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tables import mean_tactile
 from haptex_compile.shading import (
-    FINAL_SIDES_PX,
+    FINAL_SIDE_PX,
     Light,
     estimate_light,
     normalised_height_error,
@@ -310,7 +310,7 @@ def run(quick: bool = False) -> str:
     if not quick:
         lines += ["", "Light estimated on larger Brownian tiles (H = 0.7, 20 µm px, light 15°, 30°): the"
                   " search's final image is at most"
-                  f" {max(FINAL_SIDES_PX)} px, and averaging a fractal image's shading biases the slant:", "",
+                  f" {FINAL_SIDE_PX} px, and averaging a fractal image's shading biases the slant:", "",
                   "| side (px) | estimated slant, tilt (°) | s |", "| --- | --- | --- |"]
         for side in (256, 512):
             h = ts.brownian_surface((side, side), PIXEL_UM, hurst=0.7, seed=2)
