@@ -253,6 +253,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                          "solved_on": solved_on}
     if light_on is not None:
         report["shading"]["light_estimated_on"] = light_on
+        report["shading"]["light_albedo_at_bound"] = sfs.light.albedo_at_bound
     # Average the heights over the lattice as well, so the surface repeats exactly (a whole
     # image's solve has slow ramps from its free edges: flattened out first, as for the photo).
     cell = Lattice(True, basis[:, 0], basis[:, 1], 1.0, "surface lattice")

@@ -55,6 +55,9 @@ TILT_SCAN_DEG = 30.0
 TILT_SCAN_STEP_DEG = 10.0
 ALIGN_COS = float(np.cos(np.deg2rad(35.0)))
 CAP_BIAS_DEG = 2.0
+# An estimate whose fitted albedo is within 2 % of that bound is flagged: there the misfit
+# did not fix the slant (a plateau of steep lights with a large albedo fits as well).
+AT_BOUND_FRACTION = 0.98
 KNEE_FACTOR = 1.25
 # Weight of the flat-on-average prior for non-periodic images (see solve_variational).
 LOWFREQ_WEIGHT = 1.0
@@ -78,12 +81,17 @@ class Light:
         ``(cos tilt, sin tilt)`` in image (x, y) (x right, y down).
     slant_sd_deg, tilt_sd_deg : float
         Standard uncertainties in degrees (0 when given by the user).
+    albedo_at_bound : bool
+        Estimated lights only: the albedo fitted at this light sat at the light search's upper
+        bound, so the image did not fix the slant (see :func:`estimate_light`); False when
+        given by the user.
     """
 
     slant_deg: float
     tilt_deg: float
     slant_sd_deg: float = 0.0
     tilt_sd_deg: float = 0.0
+    albedo_at_bound: bool = False
 
     def __post_init__(self) -> None:
         for name in ("slant_deg", "tilt_deg", "slant_sd_deg", "tilt_sd_deg"):
@@ -513,9 +521,9 @@ def _estimate_light(img, valid, mask, refine, censored=None) -> tuple[Light, flo
                 blocks.append(_moment_slant(vb))
     slant_sd = float(np.std(blocks) / np.sqrt(len(blocks))) if len(blocks) > 1 else 90.0
     slant_sd = float(min(max(slant_sd, 5.0), 90.0))
-    albedo = None
+    albedo, at_bound = None, False
     if refine:
-        slant, tilt, slant_sd, tilt_sd, albedo = _refine_light(
+        slant, tilt, slant_sd, tilt_sd, albedo, at_bound = _refine_light(
             img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask)
         )
     if albedo is None:
@@ -523,18 +531,26 @@ def _estimate_light(img, valid, mask, refine, censored=None) -> tuple[Light, flo
     if np.sin(np.deg2rad(tilt)) > 0:
         # The search may cross the horizontal; the flip is exact (heights negated).
         tilt += 180.0
-    return Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd), albedo
+    light = Light(float(np.clip(slant, 0.0, 90.0)), float(tilt % 360.0), slant_sd, tilt_sd, at_bound)
+    return light, albedo
 
 
 def estimated_light_note(light: Light) -> str:
     """The warning that states an estimated light and its uncertainty."""
-    return (
+    note = (
         f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
         f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
         " versus dents, is resolved by assuming light from the top of the image; the ± is the"
         " width of the misfit's minimum and does not cover other minima: on low lattice reliefs"
         " lit at 15-30° the search has settled 4-23° steeper, so give --light when it is known)"
     )
+    if light.albedo_at_bound:
+        note += (
+            "; UNRELIABLE: the fitted albedo sits at its upper bound, where the image does not"
+            " fix the slant (near-frontal light or a low relief lands there; on the bench such"
+            " estimates were up to 38° off): give --light"
+        )
+    return note
 
 
 def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downsample_to) -> float:
@@ -579,17 +595,25 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
     Returns
     -------
-    (slant, tilt, slant_sd, tilt_sd, albedo)
-        Degrees, and the albedo fitted at the chosen light. The uncertainties are the change
+    (slant, tilt, slant_sd, tilt_sd, albedo, at_bound)
+        Degrees, the albedo fitted at the chosen light, and whether that albedo is within
+        ``1 - AT_BOUND_FRACTION`` of its bound. The uncertainties are the change
         that doubles the misfit (parabola through ±1°), at least 1° for the slant, combined
         in quadrature with ``CAP_BIAS_DEG`` for the bound's possible bias (too low a slant when
         no normal comes within ``acos(ALIGN_COS)`` of the light), and at least 0.5° for the
         tilt. On the bench surfaces (noise-free) the errors are 0-5° in slant and 0-5° in
         tilt; see ``bench/bench_shading.py`` for the calibration. They are local: on smooth
         lattice reliefs (RMS slope 0.16) lit at 15-30° the search settled 4-23° too steep
-        with ±2°, because the solver at the true light stops in a fold (misfit 3-10 times
-        that of the steeper light with a higher albedo, though the true surface fits to
-        1e-10).
+        with ±2°. Measured causes: the statistical tilt is up to 36° off on lattices; the
+        true light's well is narrow (±2.5° at 256 px, where it is the global minimum of the
+        misfit) and the solver's few steps leave its misfit above that of a plateau of steep
+        lights, each with the albedo at its bound. Near-frontal light (slant 0-5°) lands on
+        the same plateau (random bumps: 36°). `at_bound` marks that plateau: on the bench's
+        four surfaces and three lattices at 256 px (slants 0, 5, 10, 15, 30, 45, 60°) it
+        flagged every estimate 5° or more off in slant except three: overhead light on the
+        sphere cap and the plain weave (estimated 14° and 16°) and one lattice at 15°
+        (estimated 20°); and, of the good estimates, two at 60°, where the bound is active
+        anyway.
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
@@ -621,6 +645,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
                 cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
             return cache[key]
 
+        fit.albedo_max = top / ALIGN_COS
         return fit
 
     def polish_tilt(e_of, s, t, step, stop):
@@ -692,7 +717,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
     slant_sd = float(np.hypot(max(half_width(e_of(s - 1, t), e_of(s + 1, t)), 1.0), CAP_BIAS_DEG))
     tilt_sd = max(half_width(e_of(s, t - 1), e_of(s, t + 1)), 0.5)
-    return s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), fit(s, t)[1]
+    albedo = fit(s, t)[1]
+    at_bound = albedo >= AT_BOUND_FRACTION * fit.albedo_max
+    return s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound)
 
 
 # --------------------------------------------------------------------------------------------

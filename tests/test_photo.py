@@ -85,6 +85,7 @@ def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
     assert max(rows, cols) <= 256
     assert abs(shading["light_slant_deg"] - 30.0) <= 3.0
     assert abs((shading["light_tilt_deg"] - 200.0 + 90.0) % 180.0 - 90.0) <= 3.0
+    assert shading["light_albedo_at_bound"] is False  # a good estimate is not flagged
     assert any("light estimated" in r.getMessage() for r in caplog.records)
     assert any("light estimated" in w and shading["light_estimated_on"] in w for w in shading["warnings"])
     y, x = np.mgrid[100:924:4, 100:924:4]

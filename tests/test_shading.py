@@ -487,6 +487,23 @@ def test_light_search_ends_on_the_whole_tile():
     assert normalised_height_error(found.height, h) <= e_given + 0.015
 
 
+def test_near_frontal_light_is_flagged_unreliable(bumps128):
+    # Under near-frontal light the slant's misfit has no minimum the search can find: a
+    # plateau of steep lights, each with the albedo at its bound, fits as well (bumps lit at
+    # 5° come out at about 36°). The estimate says so; a well-posed one does not.
+    img = render_lambertian(bumps128, PX, Light(5.0, 30.0), 0.8, periodic=True)
+    est, _ = estimate_light(img)
+    assert est.albedo_at_bound
+    assert "UNRELIABLE" in shading.estimated_light_note(est)
+    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
+    assert any("UNRELIABLE" in w for w in found.warnings)
+    img = render_lambertian(bumps128, PX, Light(30.0, 30.0), 0.8, periodic=True)
+    est, _ = estimate_light(img)
+    assert abs(est.slant_deg - 30.0) <= 3.0 and not est.albedo_at_bound
+    assert "UNRELIABLE" not in shading.estimated_light_note(est)
+    assert not Light(5.0, 30.0).albedo_at_bound  # a given light is never flagged
+
+
 def test_estimated_slant_follows_the_true_slant(bumps128):
     slants = []
     for s in (20.0, 40.0, 60.0):
