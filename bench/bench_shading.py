@@ -226,8 +226,8 @@ def run(quick: bool = False) -> str:
         " error = normalised RMS height error after the best affine fit; tactile error ="
         " relative error of the tables' mean a40 / a320 (channel intensities I_p / I_np in"
         " brackets), recovered against true heights at the same RMS relief; † = estimated light"
-        " flagged unreliable (fitted albedo at the search's bound; the slant is then the image"
-        " statistics' where they put it lower).",
+        " flagged unreliable (fitted albedo at the search's bound; the light is then the best"
+        " below that plateau of steep lights).",
         "",
         "| surface | slant, tilt (°) | Tsai-Shah error (baseline) | default error, light given |"
         " ratio to baseline | default error, light estimated | estimated slant, tilt (°) |"
@@ -349,7 +349,7 @@ def run(quick: bool = False) -> str:
     if not quick:
         lines += ["", "Near-frontal light, estimated (tilt 30°; † = flagged unreliable: the fitted"
                   " albedo sits at the search's bound, where the misfit does not fix the slant; the slant"
-                  " is then the image statistics' where lower; the search alone gave 36-38° for the"
+                  " is then searched below that plateau; the search alone gave 36-38° for the"
                   " bumps and the Brownian surface at 0° and 5°):", "",
                   "| surface | slant 0° | 5° | 10° |", "| --- | --- | --- | --- |", *_near_frontal_rows(n)]
     lines += ["", "Sphere cap with a sharp rim (kink, `rim_round_um=0`), light given:", "",
@@ -366,8 +366,8 @@ def run(quick: bool = False) -> str:
     lines += ["", "Photo-like cells: smooth reliefs on square and oblique lattices"
               f" (`synth_images.lattice_relief`, RMS slope about 0.2), {n} px periodic tiles; normalised"
               " height error with the light given / estimated (estimated slant, tilt; † = flagged"
-              " unreliable, the fitted albedo at its bound; the slant is then the image statistics'"
-              " where lower):", "",
+              " unreliable, the fitted albedo at its bound; the light is then searched below that"
+              " plateau):", "",
               "| lattice t1; t2 (px) | " + " | ".join(f"{s:g}, {t:g}" for s, t in LIGHTS[:4]) + " | worst estimated - given |",
               "| --- | --- | --- | --- | --- | --- |"]
     for t1, t2 in LATTICES if not quick else LATTICES[:1]:
