@@ -62,6 +62,11 @@ AT_BOUND_FRACTION = 0.98
 # statistics' slant or less is a well (true lights on lattice reliefs: 0.03-0.21; random
 # bumps and Brownian surfaces under near-frontal light, which have none: 0.8-0.9).
 WELL_DEPTH = 0.3
+# That plateau, where the image does not fix the slant, lies near acos(ALIGN_COS) = 35° plus
+# the relief's slopes (measured 34-46°); a flagged estimate steeper than this is a steep light
+# with the bound active (photo bench, lattice windows lit at 55°: 50-58°), left as it is (the
+# search below it took a plain weave's window from 0.371 to 1.000).
+PLATEAU_MAX_DEG = 47.5
 KNEE_FACTOR = 1.25
 # Weight of the flat-on-average prior for non-periodic images (see solve_variational).
 LOWFREQ_WEIGHT = 1.0
@@ -625,8 +630,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
         (estimated 20°); and, of the good estimates, two at 60°, where the bound is active
         anyway.
 
-        When the plateau lies above the statistical slant `slant`, the light is searched
-        again below it (a 180° tilt scan at that slant, a slant scan, a compass search) and a
+        When the plateau lies above the statistical slant `slant` and no steeper than
+        ``PLATEAU_MAX_DEG`` (a steeper one is a steep light with the bound active), the
+        light is searched again below it (a 180° tilt scan at that slant, a slant scan, a compass search) and a
         well is taken if its misfit is at most ``WELL_DEPTH`` times the best at that slant,
         else that slant with the search's tilt; `at_bound` stays set and the uncertainties
         span the plateau. Measured at 256 px (bumps, Brownian surface, three lattices; 15
@@ -733,7 +739,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
     s, t = compass(e_of, s, t)
     plateau = None
-    if fit(s, t)[1] >= AT_BOUND_FRACTION * fit.albedo_max and stat_slant < s:
+    if fit(s, t)[1] >= AT_BOUND_FRACTION * fit.albedo_max and stat_slant < s <= PLATEAU_MAX_DEG:
         # On the plateau of steep lights with the albedo at its bound, where the misfit does
         # not fix the slant. Below it the true light's well is deep and narrow (lattice
         # reliefs lit at 15°: misfit 1e-3 against 4e-2 10° of tilt away), but the search's
