@@ -483,9 +483,10 @@ def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, flo
       smallest misfit (:func:`_refine_light`), and the albedo is the one fitted there. This
       matters: the solver is very sensitive to the light (1-2° off can double its error).
       When the albedo fitted there sits at its bound (``Light.albedo_at_bound``: the misfit
-      did not fix the slant) above the statistical slant, the light is searched again below
-      that plateau (see :func:`_refine_light`) and the estimate stays flagged, with an
-      uncertainty spanning the plateau.
+      did not fix the slant) above the statistical slant and no steeper than
+      ``PLATEAU_MAX_DEG``, the light is searched again below that plateau (see
+      :func:`_refine_light`) and the estimate stays flagged, with an uncertainty spanning
+      the plateau.
 
     Without `refine`, the uncertainties are the spread of the same estimators over 4 x 4
     blocks divided by 4 (sampling only), with a floor of 5° for the slant's model error;
@@ -632,14 +633,15 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
         When the plateau lies above the statistical slant `slant` and no steeper than
         ``PLATEAU_MAX_DEG`` (a steeper one is a steep light with the bound active), the
-        light is searched again below it (a 180° tilt scan at that slant, a slant scan, a compass search) and a
-        well is taken if its misfit is at most ``WELL_DEPTH`` times the best at that slant,
-        else that slant with the search's tilt; `at_bound` stays set and the uncertainties
-        span the plateau. Measured at 256 px (bumps, Brownian surface, three lattices; 15
-        such cases, slants 0-30°): the lattices lit at 5-15° came out within 0.5° and 1° in 5
-        of 7 cases, with the height error of the given light (e.g. 0.867 -> 0.042); the
-        others were left at the statistics' slant (e.g. Brownian at 5°: 0.960 -> 0.614,
-        0.603 with the light given). Cost: about 30-50 more solves, 2-4 s at 256 px.
+        light is searched again below it (a 180° tilt scan at that slant, a slant scan, a
+        compass search) and a well is taken if its misfit is at most ``WELL_DEPTH`` times
+        the best at that slant, else that slant with the search's tilt; `at_bound` stays set
+        and the uncertainties span the plateau. Measured at 256 px (bumps, Brownian surface,
+        three lattices; 15 such cases, slants 0-30°): the lattices lit at 5-15° came out
+        within 0.5° and 1° in 5 of 7 cases, with the height error of the given light (e.g.
+        0.867 -> 0.042); the others were left at the statistics' slant (e.g. Brownian at 5°:
+        0.960 -> 0.614, 0.603 with the light given). Cost: about 30-50 more solves, 2-4 s at
+        256 px.
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
