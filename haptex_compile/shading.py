@@ -560,11 +560,12 @@ def estimated_light_note(light: Light) -> str:
     )
     if light.albedo_at_bound:
         note += (
-            "; UNRELIABLE: the misfit was lowest on a plateau of steep lights with the albedo"
-            " at its upper bound, where it does not fix the slant (near-frontal light or a low"
-            " relief lands there); the light given is the best below that plateau (the ± spans"
-            " it). On the bench such estimates were right for 5 of 7 lattice reliefs lit at 5-15°"
-            " and otherwise up to 18° off in slant and 70° in tilt: give --light"
+            "; UNRELIABLE: the misfit was lowest on a plateau of lights with the albedo at its"
+            " upper bound, where it does not fix the slant (near-frontal light, a low relief or"
+            f" a steep light lands there); a plateau below {PLATEAU_MAX_DEG:g}° was searched"
+            " again beneath (the ± spans it): on the bench such estimates were right for 5 of 7"
+            " lattice reliefs lit at 5-15°, otherwise up to 18° off in slant and 70° in tilt:"
+            " give --light"
         )
     return note
 

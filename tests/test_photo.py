@@ -93,6 +93,25 @@ def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.1
 
 
+def test_a_steep_light_flagged_at_its_bound_is_left_steep():
+    # A plain weave lit at 55°: the window's estimate sits at the albedo bound (flagged) at
+    # 58°, above the plateau where the image does not fix the slant (35° + slopes, capped at
+    # PLATEAU_MAX_DEG). It is a steep light with the bound active, not that plateau: the search
+    # below the plateau, which would settle 12° lower with the tilt 38° off, is not run.
+    from haptex_compile.shading import PLATEAU_MAX_DEG
+    from haptex_compile.synth_images import weave_image
+
+    t1, t2 = (14.2, -5.3), (6.1, 19.8)
+    truth = 40.0 * weave_image((512, 512), t1, t2, kind="plain")
+    image = render_lambertian(truth, PIXEL_UM, Light(55.0, 300.0), 0.8)
+    options = SourceOptions(light=None, roughness="none", relief_um=float(np.std(truth)))
+    shading = photo_surface(image, PIXEL_UM, options, "weave", {}).report["shading"]
+    assert shading["light_albedo_at_bound"]
+    assert shading["light_slant_deg"] > PLATEAU_MAX_DEG
+    assert abs(shading["light_slant_deg"] - 55.0) <= 5.0
+    assert abs((shading["light_tilt_deg"] - 300.0 + 90.0) % 180.0 - 90.0) <= 15.0
+
+
 def test_a_residual_larger_than_the_pattern_is_reported():
     """White noise of 1.5 x the pattern's grey RMS: the tile explains about 1 / (1 + 1.5^2) of the
     variance and the roughness scaled from the residual exceeds the relief, which is warned about;
