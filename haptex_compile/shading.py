@@ -28,6 +28,7 @@ __all__ = [
     "shape_from_shading",
     "scale_relief",
     "normalised_height_error",
+    "tilt_axis_difference_deg",
     "valid_pixels",
     "METHODS",
 ]
@@ -250,6 +251,12 @@ def render_lambertian(
     lx, ly, lz = light.vector
     shade = (lz - p * lx - q * ly) / np.sqrt(1.0 + p * p + q * q)
     return np.clip(albedo * shade, 0.0, 1.0)
+
+
+def tilt_axis_difference_deg(tilt_a_deg: float, tilt_b_deg: float) -> float:
+    """Angle in [0, 90] degrees between two tilts' axes: a tilt and the tilt + 180° light the
+    same surface, bumps versus dents (see :func:`estimate_light`)."""
+    return abs((tilt_a_deg - tilt_b_deg + 90.0) % 180.0 - 90.0)
 
 
 def normalised_height_error(height: np.ndarray, height_true: np.ndarray) -> float:
@@ -741,8 +748,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
         return s, t
 
     s, t = compass(e_of, s, t)
+    bound = AT_BOUND_FRACTION * fit.albedo_max  # a fitted albedo this high is at the bound
     plateau = None
-    if fit(s, t)[1] >= AT_BOUND_FRACTION * fit.albedo_max and stat_slant < s <= PLATEAU_MAX_DEG:
+    if fit(s, t)[1] >= bound and stat_slant < s <= PLATEAU_MAX_DEG:
         # On the plateau of steep lights with the albedo at its bound, where the misfit does
         # not fix the slant. Below it the true light's well is deep and narrow (lattice
         # reliefs lit at 15°: misfit 1e-3 against 4e-2 10° of tilt away), but the search's
@@ -757,7 +765,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
         def free(a, b):
             e, alb = fit(a, b)
-            return e if alb < AT_BOUND_FRACTION * fit.albedo_max and a <= top_slant else np.inf
+            return e if alb < bound and a <= top_slant else np.inf
 
         tilts = t + np.arange(0.0, 180.0, TILT_SCAN_STEP_DEG)
         errs = [free(stat_slant, c) for c in tilts]
@@ -781,12 +789,12 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     slant_sd = float(np.hypot(max(half_width(e_of(s - 1, t), e_of(s + 1, t)), 1.0), CAP_BIAS_DEG))
     tilt_sd = max(half_width(e_of(s, t - 1), e_of(s, t + 1)), 0.5)
     albedo = fit(s, t)[1]
-    at_bound = albedo >= AT_BOUND_FRACTION * fit.albedo_max
+    at_bound = albedo >= bound
     if plateau is not None:
         # The plateau fits as well: the ± spans it. Still flagged.
         at_bound = True
         slant_sd = max(slant_sd, plateau[0] - s)
-        tilt_sd = max(tilt_sd, abs((plateau[1] - t + 90.0) % 180.0 - 90.0))
+        tilt_sd = max(tilt_sd, tilt_axis_difference_deg(plateau[1], t))
     return s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound)
 
 
