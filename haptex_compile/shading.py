@@ -678,7 +678,10 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
             key = (round(s, 3), round(float(t) % 360.0, 3))
             if key not in cache:
                 lv = Light(s, t % 360.0).vector
-                z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS, **cens)
+                # The exact reflectance on every level: the misfits of different lights are
+                # compared, and the coarse levels' damping depends on the light.
+                z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS,
+                                         subgrid_damping=0.0, **cens)
                 cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
             return cache[key]
 
