@@ -33,7 +33,7 @@ coarsest level, 0.03-0.08 with 20 steps down to 8 px). An averaged image is dark
 shading of the averaged surface where the surface is rough below the level's pixel; on the
 coarse levels the squared slope across the light is therefore damped in proportion to the
 image's sub-pixel variance (``subgrid_damping``), or rough surfaces come back with spurious
-long waves across the light (Brownian surfaces at 15°: 1.24 x the true RMS relief, 1.12 x
+long waves across the light (Brownian surfaces at 15°: 1.23 x the true RMS relief, 1.12 x
 with the damping).
 
 Albedo: refitted by least squares after each accepted step (optionally eliminated from the
@@ -175,7 +175,8 @@ def _reflectance(p, q, light, across_weight=1.0):
 
 
 def _across(light) -> tuple[float, float]:
-    """Unit image-plane direction across the light (along it for overhead light: any)."""
+    """Unit image-plane direction across the light ((1, 0) for overhead light, which has
+    none: callers treat that case themselves)."""
     lx, ly = float(light[0]), float(light[1])
     n = float(np.hypot(lx, ly))
     return (-ly / n, lx / n) if n > 1e-9 else (1.0, 0.0)
@@ -601,7 +602,7 @@ def solve_variational(
         level's pixels over its variance between them: about 1 at 64 px on a Brownian
         surface's 256 px image, below 0.2 on the sphere cap, the plain weave and the bumps.
         Measured on Brownian surfaces (H = 0.7, 256 px, slant 15°, 7 seeds x 2 tilts, light
-        given): RMS relief 1.24 -> 1.12 x the truth's, mean a320 error -21 % -> -9 %.
+        given): RMS relief 1.23 -> 1.12 x the truth's (means), mean a320 error -21 % -> -9 %.
     dark, bright : ndarray, optional
         Weights of the censored pixels: black ones (attached shadows), which only say that
         ``albedo R <= DARK_LEVEL``, and saturated ones, ``albedo R >= BRIGHT_LEVEL``. Each
@@ -615,6 +616,8 @@ def solve_variational(
     """
     pyramid = [(image.astype(_F), weight.astype(_F), dark, bright)]
     damping = SUBGRID_DAMPING if subgrid_damping is None else float(subgrid_damping)
+    if np.hypot(light_vec[0], light_vec[1]) <= 1e-9:
+        damping = 0.0  # overhead light: no direction across it, both slopes enter alike
     squares = pyramid[0][0] ** 2  # area averages of the squared image, for the sub-pixel variance
     across_weights = [1.0]
     while min(pyramid[-1][0].shape) // 2 >= min_size and len(pyramid) < max_levels:

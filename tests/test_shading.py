@@ -234,7 +234,7 @@ def test_subpixel_variance_ratio_of_known_images():
 
 def test_coarse_damping_removes_spurious_relief_of_rough_surfaces(monkeypatch):
     # Brownian surfaces under a 15° light: without the coarse levels' damping the recovered
-    # RMS relief is about 1.24 x the truth's (spurious long waves across the light, which the
+    # RMS relief is about 1.23 x the truth's (spurious long waves across the light, which the
     # tactile tables then pay for by scaling the fine detail down); with it about 1.12 x
     # (measured on 7 seeds x 2 tilts, 256 px). Mean over 3 seeds x 2 tilts here.
     from haptex_compile import shading_variational
