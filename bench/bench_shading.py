@@ -235,7 +235,8 @@ def _undamped_height(truth_um: np.ndarray, light: Light) -> np.ndarray:
 def _energy_check(case: dict, truth_tactile: dict) -> str:
     """A table row: the energies of the default and accurate solvers' heights over the true
     surface's, and what each gives in a320 (the true heights polished by the solver's own
-    fine level, so that all three are minima of the same energy)."""
+    fine level, so that all three are minima of the same energy). The solvers' signed tactile
+    errors must be in the case's results already."""
     truth = case["height_true_um"]
     light = Light(case["slant_deg"], case["tilt_deg"])
     img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)
@@ -254,8 +255,7 @@ def _energy_check(case: dict, truth_tactile: dict) -> str:
     for key in ("default", "accurate"):
         res = case["results"][key]
         ratio = e_of(res["height_raw_um"] / PIXEL_UM, res["albedo"]) / e_true
-        signed = _tactile_errors(truth_tactile, res["height_um"], PIXEL_UM)["a320"]
-        cells.append(f"{ratio:.2f} | {res['error']:.3f} | {signed:+.0%}")
+        cells.append(f"{ratio:.2f} | {res['error']:.3f} | {res['tactile_signed']['a320']:+.0%}")
     return (f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {np.mean(dark > 0):.1%} | "
             + " | ".join(cells) + f" | {normalised_height_error(polished, truth):.4f} | {a320:+.0%} |")
 
@@ -379,8 +379,8 @@ def run(quick: bool = False) -> str:
         )
         acc = [c["results"]["accurate"] for c in sel]
         for res in acc:
-            res["tactile"] = {k: abs(v) for k, v in
-                              _tactile_errors(truth_tactile[name], res["height_um"], PIXEL_UM).items()}
+            res["tactile_signed"] = _tactile_errors(truth_tactile[name], res["height_um"], PIXEL_UM)
+            res["tactile"] = {k: abs(v) for k, v in res["tactile_signed"].items()}
         worst_acc = {q: max(r["tactile"][q] for r in acc) for q in ("a40", "a320", "i_p", "i_np")}
         lines[-1] += (f" {max(r['error'] for r in acc):.3f} | {worst_acc['a40']:.0%} / {worst_acc['a320']:.0%}"
                       f" ({worst_acc['i_p']:.1%} / {worst_acc['i_np']:.1%}) |")
