@@ -36,6 +36,7 @@ from haptex_compile.shading import (
     FINAL_SIDE_PX,
     Light,
     estimate_light,
+    light_misfit,
     normalised_height_error,
     render_lambertian,
     shape_from_shading,
@@ -435,7 +436,10 @@ def run(quick: bool = False) -> str:
               f" (`synth_images.lattice_relief`, RMS slope about 0.2), {n} px periodic tiles; normalised"
               " height error with the light given / estimated (estimated slant, tilt; † = flagged"
               " unreliable, the fitted albedo at its bound; the light is then searched below that"
-              " plateau):", "",
+              " plateau; then the search's misfit at the estimate over the true light's"
+              " (`shading.light_misfit`): above 1 the search missed the true light's well, at or"
+              " below 1 the search's misfit cannot tell the two apart; b = at the true light the"
+              " fitted albedo sits at the search's bound, which then excludes the true albedo):", "",
               "| lattice t1; t2 (px) | " + " | ".join(f"{s:g}, {t:g}" for s, t in LIGHTS[:4]) + " | worst estimated - given |",
               "| --- | --- | --- | --- | --- | --- |"]
     for t1, t2 in LATTICES if not quick else LATTICES[:1]:
@@ -448,7 +452,10 @@ def run(quick: bool = False) -> str:
             e_g = normalised_height_error(given.height, h)
             e_f = normalised_height_error(found.height, h)
             gaps.append(e_f - e_g)
-            cells.append(f"{e_g:.3f} / {e_f:.3f} ({found.light.slant_deg:.0f}, {found.light.tilt_deg:.0f}{_flag(found.light)})")
+            m_true, true_at_bound = light_misfit(img, Light(slant, tilt))
+            ratio = light_misfit(img, found.light)[0] / m_true
+            cells.append(f"{e_g:.3f} / {e_f:.3f} ({found.light.slant_deg:.0f}, {found.light.tilt_deg:.0f}{_flag(found.light)};"
+                         f" {ratio:.2g}{' b' if true_at_bound else ''})")
         lines.append(f"| {t1}; {t2} | " + " | ".join(cells) + f" | {max(gaps):+.3f} |")
     if not quick:
         lines += ["", "Light estimated on larger Brownian tiles (H = 0.7, 20 µm px, light 15°, 30°): the"

@@ -590,6 +590,73 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
+    """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
+    on `img` reduced to at most `side_px` pixels (cached per light).
+
+    For each light the default solver fits a surface, with the exact reflectance on every
+    level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data
+    energy left (thin-plate term excluded). ``fit.albedo_max`` is that bound. `censored` is
+    :func:`_censored_pixels` of the image.
+    """
+    from haptex_compile.shading_variational import energy, solve_variational
+
+    # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
+    # lights fit as well (measured on 256 px bumps: slant 15° estimated as 38°). Averaging
+    # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
+    # bench).
+    small, w = reduce(img, valid, side_px)
+    # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
+    # each reduced pixel that has too few valid ones.
+    cens = {}
+    if CENSORED:
+        everywhere = np.ones(img.shape, bool)
+        for key, full in zip(("dark", "bright"), censored):
+            frac = reduce(full, everywhere, side_px)[0] * (w == 0)
+            cens[key] = frac if frac.any() else None
+    top = float(np.percentile(small[w > 0], 99.9))
+    cache: dict[tuple[float, float], tuple[float, float]] = {}
+
+    def fit(s, t):
+        s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
+        key = (round(s, 3), round(float(t) % 360.0, 3))
+        if key not in cache:
+            lv = Light(s, t % 360.0).vector
+            # The exact reflectance on every level: the misfits of different lights are
+            # compared, and the coarse levels' damping depends on the light.
+            z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS,
+                                     subgrid_damping=0.0, **cens)
+            cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
+        return cache[key]
+
+    fit.albedo_max = top / ALIGN_COS
+    return fit
+
+
+def light_misfit(image, light: Light, *, mask=None) -> tuple[float, bool]:
+    """The misfit by which the light search ranks lights, for one light: the data energy the
+    default solver leaves on the image (block-averaged to at most ``FINAL_SIDE_PX`` pixels,
+    as in the search's final stage), with the albedo bounded above by ``I_top / ALIGN_COS``.
+    Lower is better; compare lights on the same image only.
+
+    Comparing the estimated light with the true one tells a search that missed the true
+    light's well (the true light fits better) from shading that cannot tell them apart
+    (the estimate fits as well or better), unless the bound excludes the true albedo there
+    (steep light on a gentle relief: no normal within ``acos(ALIGN_COS)`` of the light).
+
+    Returns
+    -------
+    (float, bool)
+        The misfit, and whether the fitted albedo sits at its bound (within
+        ``1 - AT_BOUND_FRACTION``).
+    """
+    img, _ = _as_image(image)
+    valid = valid_pixels(img, mask)
+    fit = _misfit_function(img, valid, _censored_pixels(img, mask), FINAL_SIDE_PX, _block_average)
+    misfit, albedo = fit(light.slant_deg, light.tilt_deg)
+    return float(misfit), bool(albedo >= AT_BOUND_FRACTION * fit.albedo_max)
+
+
 def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
@@ -651,42 +718,10 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
         0.960 -> 0.614, 0.603 with the light given). Cost: about 30-50 more solves, 2-4 s at
         256 px.
     """
-    from haptex_compile.shading_variational import energy, solve_variational
-
-    dark_full, bright_full = censored
-    everywhere = np.ones(img.shape, bool)
     stat_slant = float(slant)
 
     def make_fit(side_px, reduce=_downsample_to):
-        # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
-        # lights fit as well (measured on 256 px bumps: slant 15° estimated as 38°). Averaging
-        # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
-        # bench).
-        small, w = reduce(img, valid, side_px)
-        # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
-        # each reduced pixel that has too few valid ones.
-        cens = {}
-        if CENSORED:
-            for key, full in (("dark", dark_full), ("bright", bright_full)):
-                frac = reduce(full, everywhere, side_px)[0] * (w == 0)
-                cens[key] = frac if frac.any() else None
-        top = float(np.percentile(small[w > 0], 99.9))
-        cache: dict[tuple[float, float], tuple[float, float]] = {}
-
-        def fit(s, t):
-            s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
-            key = (round(s, 3), round(float(t) % 360.0, 3))
-            if key not in cache:
-                lv = Light(s, t % 360.0).vector
-                # The exact reflectance on every level: the misfits of different lights are
-                # compared, and the coarse levels' damping depends on the light.
-                z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS,
-                                         subgrid_damping=0.0, **cens)
-                cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
-            return cache[key]
-
-        fit.albedo_max = top / ALIGN_COS
-        return fit
+        return _misfit_function(img, valid, censored, side_px, reduce)
 
     def polish_tilt(e_of, s, t, step, stop):
         while step >= stop:

@@ -603,6 +603,18 @@ def test_light_below_the_plateau_is_found_on_a_lattice_relief():
     assert normalised_height_error(found.height, h) <= normalised_height_error(given.height, h) + 0.02
 
 
+def test_light_misfit_is_least_at_the_true_light_and_blind_to_the_tilts_sign(bumps128):
+    # The search's ranking: the true light leaves the smallest misfit among lights a few
+    # degrees off; a surface lit from t looks like the inverted one lit from t + 180°.
+    light = Light(30.0, 120.0)
+    img = render_lambertian(bumps128, PX, light, 0.8, periodic=True)
+    true, at_bound = shading.light_misfit(img, light)
+    assert not at_bound  # the relief has normals near the light: the albedo is free
+    for s, t in ((25.0, 120.0), (35.0, 120.0), (30.0, 110.0), (30.0, 130.0)):
+        assert shading.light_misfit(img, Light(s, t))[0] > 2 * true, (s, t)
+    assert shading.light_misfit(img, Light(30.0, 300.0))[0] == pytest.approx(true, rel=1e-3)
+
+
 def test_estimated_slant_follows_the_true_slant(bumps128):
     slants = []
     for s in (20.0, 40.0, 60.0):
