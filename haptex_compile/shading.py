@@ -596,7 +596,8 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
 
     For each light the default solver fits a surface, with the exact reflectance on every
     level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data
-    energy left (thin-plate term excluded). ``fit.albedo_max`` is that bound. `censored` is
+    energy left (thin-plate term excluded). ``fit.at_bound`` is the albedo from which a fit
+    counts as held at that bound (``AT_BOUND_FRACTION`` of it). `censored` is
     :func:`_censored_pixels` of the image.
     """
     from haptex_compile.shading_variational import energy, solve_variational
@@ -629,7 +630,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
             cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
         return cache[key]
 
-    fit.albedo_max = top / ALIGN_COS
+    fit.at_bound = AT_BOUND_FRACTION * top / ALIGN_COS
     return fit
 
 
@@ -654,7 +655,7 @@ def light_misfit(image, light: Light, *, mask=None) -> tuple[float, bool]:
     valid = valid_pixels(img, mask)
     fit = _misfit_function(img, valid, _censored_pixels(img, mask), FINAL_SIDE_PX, _block_average)
     misfit, albedo = fit(light.slant_deg, light.tilt_deg)
-    return float(misfit), bool(albedo >= AT_BOUND_FRACTION * fit.albedo_max)
+    return float(misfit), bool(albedo >= fit.at_bound)
 
 
 def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
@@ -720,9 +721,6 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     """
     stat_slant = float(slant)
 
-    def make_fit(side_px, reduce=_downsample_to):
-        return _misfit_function(img, valid, censored, side_px, reduce)
-
     def polish_tilt(e_of, s, t, step, stop):
         while step >= stop:
             cands = [t - step, t, t + step]
@@ -740,7 +738,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     # rises slowly) until the albedo bound bites; on the reduced image the plateau can dip
     # below the true slant's misfit, so take the knee: the lowest slant whose misfit is within
     # KNEE_FACTOR of the minimum.
-    fit = make_fit(side)
+    fit = _misfit_function(img, valid, censored, side)
     e_of = lambda s_, t_: fit(s_, t_)[0]  # noqa: E731
     grid = np.arange(5.0, 80.0 + 1e-9, 5.0)
     errs = np.asarray([e_of(g, tilt) for g in grid])
@@ -758,7 +756,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     # pick the light are far below that 5 % (measured at slants 15-60° on the bench's 256 px
     # tiles: sphere cap worst gap to the given light +0.031 -> +0.006, plain weave
     # +0.018 -> +0.008, a 32 px oblique lattice at 30° 0.294 -> 0.204; 1-1.5 s more).
-    fit = make_fit(FINAL_SIDE_PX, _block_average)
+    fit = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average)
     e_of = lambda s_, t_: fit(s_, t_)[0]  # noqa: E731
     if _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS:
         # Averaging biases the slant upwards (it darkens rough shading): scan up to just above
@@ -786,7 +784,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
         return s, t
 
     s, t = compass(e_of, s, t)
-    bound = AT_BOUND_FRACTION * fit.albedo_max  # a fitted albedo this high is at the bound
+    bound = fit.at_bound  # a fitted albedo this high is at the bound
     plateau = None
     if fit(s, t)[1] >= bound and stat_slant < s <= PLATEAU_MAX_DEG:
         # On the plateau of steep lights with the albedo at its bound, where the misfit does

@@ -159,8 +159,9 @@ def _reflectance(p, q, light, across_weight=1.0):
     lx, ly, lz = (float(c) for c in light)
     g = 1.0 + p * p + q * q
     gp, gq = p, q
-    if across_weight != 1.0:
-        cx, cy = _across(light)
+    across = _across(light) if across_weight != 1.0 else None
+    if across is not None:
+        cx, cy = across
         pc = cx * p + cy * q
         g = g - (1.0 - across_weight) * pc * pc
         gp = p - (1.0 - across_weight) * cx * pc
@@ -174,12 +175,12 @@ def _reflectance(p, q, light, across_weight=1.0):
     return r, rp, rq
 
 
-def _across(light) -> tuple[float, float]:
-    """Unit image-plane direction across the light ((1, 0) for overhead light, which has
-    none: callers treat that case themselves)."""
+def _across(light) -> tuple[float, float] | None:
+    """Unit image-plane direction across the light; None for overhead light, which has none
+    (both slopes then enter alike)."""
     lx, ly = float(light[0]), float(light[1])
     n = float(np.hypot(lx, ly))
-    return (-ly / n, lx / n) if n > 1e-9 else (1.0, 0.0)
+    return (-ly / n, lx / n) if n > 1e-9 else None
 
 
 class _Problem:
@@ -232,10 +233,11 @@ class _Problem:
             mu, w0 = lowfreq
             phi = np.exp(-(wx**2 + wy**2) / (w0 * w0))
             # Slope across the light only: along it, the linear shading term fixes the slope.
-            cx, cy = _across(self.light)
-            across = (cx * np.sin(wx) + cy * np.sin(wy)) ** 2
-            if np.hypot(self.light[0], self.light[1]) <= 1e-9:
+            c = _across(self.light)
+            if c is None:
                 across = np.sin(wx) ** 2 + np.sin(wy) ** 2
+            else:
+                across = (c[0] * np.sin(wx) + c[1] * np.sin(wy)) ** 2
             self.lf = (mu * phi * across).astype(_F)
 
     def lowfreq(self, v):
@@ -616,8 +618,8 @@ def solve_variational(
     """
     pyramid = [(image.astype(_F), weight.astype(_F), dark, bright)]
     damping = SUBGRID_DAMPING if subgrid_damping is None else float(subgrid_damping)
-    if np.hypot(light_vec[0], light_vec[1]) <= 1e-9:
-        damping = 0.0  # overhead light: no direction across it, both slopes enter alike
+    if _across(light_vec) is None:
+        damping = 0.0  # overhead light: nothing to damp
     squares = pyramid[0][0] ** 2  # area averages of the squared image, for the sub-pixel variance
     across_weights = [1.0]
     while min(pyramid[-1][0].shape) // 2 >= min_size and len(pyramid) < max_levels:
