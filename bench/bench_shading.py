@@ -33,6 +33,7 @@ from haptex_compile.colours import TwoColourModel
 from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tables import mean_tactile
 from haptex_compile.shading import (
+    DEFAULT_SOLVER,
     FINAL_SIDE_PX,
     Light,
     estimate_light,
@@ -237,7 +238,8 @@ def _undamped_height(case: dict) -> np.ndarray:
     img, weight, kwargs = _solver_inputs(case)
     albedo = _moment_albedo(case["image"][valid_pixels(case["image"])], case["slant_deg"])
     light = Light(case["slant_deg"], case["tilt_deg"])
-    z, _ = solve_variational(img, weight, light.vector, albedo, subgrid_damping=0.0, **kwargs)
+    z, _ = solve_variational(img, weight, light.vector, albedo, subgrid_damping=0.0,
+                             **DEFAULT_SOLVER, **kwargs)
     return z.astype(float) * PIXEL_UM
 
 
