@@ -34,11 +34,14 @@ shading of the averaged surface where the surface is rough below the level's pix
 coarse levels the squared slope across the light is therefore damped in proportion to the
 image's sub-pixel variance (``subgrid_damping``), or rough surfaces come back with spurious
 long waves across the light (Brownian surfaces at 15°: 1.23 x the true RMS relief, 1.12 x
-with the damping).
+with the damping). A level stops early once a full Gauss-Newton step gains little
+(``gn_rtol``): most converge in 2-4 steps, and the time saved pays for converging the
+half-resolution level (``mid_gn``, ``mid_cg``), which the finest level's few steps rely on.
 
 Albedo: refitted by least squares after each accepted step (optionally eliminated from the
-step itself by variable projection, ``albedo_projection``) (on the finest level bounded below
-by the 99.9th percentile of the valid pixels, since ``R <= 1``). The result is very sensitive
+step itself by variable projection, ``albedo_projection``, on chosen levels without sub-pixel
+roughness) (on the finest level bounded below by the 99.9th percentile of the valid pixels,
+since ``R <= 1``). The result is very sensitive
 to it: the mean brightness fixes the mean squared slope, so a 1 % albedo error can be absorbed
 as spurious roughness; for the same reason a wrong light of a few degrees costs a lot
 (see ``bench/bench_shading.py``).
