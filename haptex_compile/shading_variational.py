@@ -41,10 +41,9 @@ half-resolution level (``mid_gn``, ``mid_cg``), which the finest level's few ste
 Albedo: refitted by least squares after each accepted step (optionally eliminated from the
 step itself by variable projection, ``albedo_projection``, on chosen levels without sub-pixel
 roughness) (on the finest level bounded below by the 99.9th percentile of the valid pixels,
-since ``R <= 1``). The result is very sensitive
-to it: the mean brightness fixes the mean squared slope, so a 1 % albedo error can be absorbed
-as spurious roughness; for the same reason a wrong light of a few degrees costs a lot
-(see ``bench/bench_shading.py``).
+since ``R <= 1``). The result is very sensitive to it: the mean brightness fixes the mean
+squared slope, so a 1 % albedo error can be absorbed as spurious roughness; for the same reason
+a wrong light of a few degrees costs a lot (see ``bench/bench_shading.py``).
 """
 from __future__ import annotations
 
@@ -610,7 +609,9 @@ def solve_variational(
         at its least-squares value for that height, so shape and albedo move together.
         Measured with ``method="accurate"``'s iteration counts on the bench surfaces: random
         bumps 0.014-0.029 -> 0.009-0.020, the sphere cap's a320 within 2 % at 15-45°
-        (instead of up to 28 %); with the default's few steps it is no better.
+        (instead of up to 28 %); with few steps on every level it was no better (the
+        default method projects on its converged half-resolution level only: see
+        ``shading.DEFAULT_SOLVER``).
     projection_levels : collection of int, optional
         Pyramid levels (0 = full resolution, 1 = half) on which `albedo_projection` applies;
         None = all.
