@@ -234,10 +234,10 @@ def test_subpixel_variance_ratio_of_known_images():
 
 def test_coarse_damping_removes_spurious_relief_of_rough_surfaces(monkeypatch):
     # Brownian surfaces under a 15° light: without the coarse levels' damping the recovered
-    # RMS relief is about 1.19 x the truth's (spurious long waves across the light, which the
-    # tactile tables then pay for by scaling the fine detail down: mean a320 error -16 %);
-    # with it about 1.12 x (a320 -8 %) (measured on 7 seeds x 2 tilts, 256 px). Mean over
-    # 3 seeds x 2 tilts here (measured 1.20 and 1.13).
+    # RMS relief is about 1.14 x the truth's (spurious long waves across the light, which the
+    # tactile tables then pay for by scaling the fine detail down: mean a320 error -15 %);
+    # with it about 1.04 x (a320 -6 %) (measured on 7 seeds x 2 tilts, 256 px). Mean over
+    # 3 seeds x 2 tilts here (measured 1.145 and 1.046).
     from haptex_compile import shading_variational
 
     def mean_rms_ratio():
@@ -254,9 +254,9 @@ def test_coarse_damping_removes_spurious_relief_of_rough_surfaces(monkeypatch):
     damped = mean_rms_ratio()
     monkeypatch.setattr(shading_variational, "SUBGRID_DAMPING", 0.0)
     exact = mean_rms_ratio()
-    assert exact >= 1.17
-    assert damped <= 1.15
-    assert damped - 1 <= 0.7 * (exact - 1)
+    assert exact >= 1.10
+    assert damped <= 1.08
+    assert damped - 1 <= 0.5 * (exact - 1)
 
 
 def test_gauss_newton_stops_once_a_full_step_gains_little(bumps128, monkeypatch):
@@ -486,6 +486,38 @@ def test_noise_degrades_gracefully(bumps128):
         errs.append(normalised_height_error(res.height, bumps128))
     # 0.5 % noise is harmless; 2 % (SNR about 6 on this image's contrast) stays useful.
     assert errs[0] < 0.15 and errs[1] < 0.35
+
+
+def test_noise_estimate_and_the_albedo_bound():
+    # The albedo's lower bound is the 99.9th percentile of the brightest pixels: on a flat
+    # grey 0.5 with Gaussian noise sigma that is 0.5 + 3.09 sigma; less 3.09 times the
+    # estimated noise, 0.5. Smooth noise-free shading estimates (nearly) no noise.
+    from haptex_compile.shading_variational import _Problem, _noise_sigma
+
+    sigma = 0.01
+    img = (0.5 + np.random.default_rng(0).normal(0, sigma, (256, 256))).astype(np.float32)
+    w = np.ones_like(img)
+    assert _noise_sigma(img, w) == pytest.approx(sigma, rel=0.03)
+    raw = _Problem(img, w, np.array([0.0, 0.0, 1.0]), 1e-4, 1).albedo_min
+    lowered = _Problem(img, w, np.array([0.0, 0.0, 1.0]), 1e-4, 1, bound_noise_sigmas=3.09).albedo_min
+    assert raw == pytest.approx(0.5 + 3.09 * sigma, abs=0.2 * sigma)
+    assert lowered == pytest.approx(0.5, abs=0.2 * sigma)
+    smooth = render_lambertian(ts.sphere_cap((128, 128), PX), PX, Light(30.0, 120.0), 0.8, periodic=True)
+    assert _noise_sigma(smooth.astype(np.float32), np.ones_like(smooth, np.float32)) < 1e-4
+
+
+def test_noise_does_not_raise_the_albedo_at_a_low_slant(bumps128, monkeypatch):
+    # At a low slant the albedo sits at its bound; with the raw percentile, noise of 1 %
+    # raises it by 3 % and the relief absorbs that (measured 0.30 against 0.13 here).
+    light = Light(15.0, 30.0)
+    clean = render_lambertian(bumps128, PX, light, 0.8, periodic=True)
+    img = np.clip(clean + np.random.default_rng(1).normal(0, 0.01, clean.shape), 0, 1)
+    errs = {}
+    for sigmas in (3.09, 0.0):
+        monkeypatch.setitem(shading.DEFAULT_SOLVER, "bound_noise_sigmas", sigmas)
+        res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
+        errs[sigmas] = normalised_height_error(res.height, bumps128)
+    assert errs[3.09] <= 0.2 < errs[0.0]
 
 
 def test_nan_and_integer_images_are_handled(bumps128):
