@@ -699,11 +699,12 @@ def solve_variational(
         if lowfreq_weight > 0 and data_shape is not None:
             side = max(data_shape) * img.shape[1] / image.shape[1]
             lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
+        bounded = level <= bound_max_level
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
-            bound_noise_sigmas,
+            bound_noise_sigmas if bounded else 0.0,  # the noise only matters where the bound does
         )
-        if level > bound_max_level:
+        if not bounded:
             prob.albedo_min = 0.0
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
