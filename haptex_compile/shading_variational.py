@@ -132,12 +132,19 @@ _BIHARMONIC = np.array(
 )
 
 
+def _filter_periodic(z: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Correlate float32 `z` with a square odd `kernel` on the periodic domain (OpenCV's
+    filters have no wrapping border: pad by wrapping, filter, crop)."""
+    r = kernel.shape[0] // 2
+    padded = cv2.copyMakeBorder(z, r, r, r, r, cv2.BORDER_WRAP)
+    return cv2.filter2D(padded, -1, kernel, borderType=cv2.BORDER_CONSTANT)[r:-r, r:-r]
+
+
 def _lap2(z: np.ndarray) -> np.ndarray:
     """Periodic ``_lap(_lap(z))`` (13-point biharmonic) by OpenCV, about 4 x faster."""
     if z.dtype != np.float32 or min(z.shape) < 3:
         return _lap(_lap(z))
-    padded = cv2.copyMakeBorder(z, 2, 2, 2, 2, cv2.BORDER_WRAP)
-    return cv2.filter2D(padded, -1, _BIHARMONIC, borderType=cv2.BORDER_CONSTANT)[2:-2, 2:-2]
+    return _filter_periodic(z, _BIHARMONIC)
 
 
 def _lap(z: np.ndarray) -> np.ndarray:
@@ -191,7 +198,7 @@ class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False,
-                 dark=None, bright=None, bound_noise_sigmas=0.0):
+                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
@@ -207,11 +214,14 @@ class _Problem:
         self.grad_data = gradient_data
         # Lambertian shading never exceeds the albedo: the brightest valid pixels bound it
         # from below (a high percentile, so that a few noisy pixels do not set it; less
-        # `bound_noise_sigmas` times the image noise, which raises a high percentile).
+        # `bound_noise_sigmas` times the image noise, which raises a high percentile). Levels
+        # without `albedo_bound` (coarse ones, whose averaged images are darker) have none.
         vals = self.img[self.w > 0.5]
-        self.albedo_min = float(np.percentile(vals, 99.9)) if vals.size else 0.0
-        if bound_noise_sigmas > 0 and vals.size:
-            self.albedo_min -= bound_noise_sigmas * _noise_sigma(self.img, self.w)
+        self.albedo_min = 0.0
+        if albedo_bound and vals.size:
+            self.albedo_min = float(np.percentile(vals, 99.9))
+            if bound_noise_sigmas > 0:
+                self.albedo_min -= bound_noise_sigmas * _noise_sigma(self.img, self.w)
         self.albedo_max = 1e3
         self.project_albedo = False
         if gradient_data:
@@ -492,8 +502,7 @@ _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32
 def _noise_sigma(img, w):
     """Robust estimate of white image noise (Immerkaer's mask, median of its response over
     pixels whose 3 x 3 neighbourhood is valid; the mask's norm is 6)."""
-    resp = cv2.filter2D(cv2.copyMakeBorder(img.astype(np.float32), 1, 1, 1, 1, cv2.BORDER_WRAP), -1,
-                        _NOISE_KERNEL, borderType=cv2.BORDER_CONSTANT)[1:-1, 1:-1]
+    resp = _filter_periodic(img.astype(np.float32), _NOISE_KERNEL)
     valid = cv2.copyMakeBorder((w > 0.5).astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_WRAP)
     full = cv2.erode(valid, np.ones((3, 3), np.uint8))[1:-1, 1:-1] > 0
     if not full.any():
@@ -677,6 +686,7 @@ def solve_variational(
     albedo : float
     """
     pyramid = [(image.astype(_F), weight.astype(_F), dark, bright)]
+    mid_cg = fine_cg if mid_cg is None else mid_cg
     damping = SUBGRID_DAMPING if subgrid_damping is None else float(subgrid_damping)
     if _across(light_vec) is None:
         damping = 0.0  # overhead light: nothing to damp
@@ -699,20 +709,17 @@ def solve_variational(
         if lowfreq_weight > 0 and data_shape is not None:
             side = max(data_shape) * img.shape[1] / image.shape[1]
             lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
-        bounded = level <= bound_max_level
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
-            bound_noise_sigmas if bounded else 0.0,  # the noise only matters where the bound does
+            bound_noise_sigmas, albedo_bound=level <= bound_max_level,
         )
-        if not bounded:
-            prob.albedo_min = 0.0
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
         prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level and not gradient_data
         prob.project_albedo &= projection_levels is None or level in projection_levels
         prob.project_albedo &= ratios[level] <= projection_max_ratio
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
-        cg = coarse_cg if level > 1 else (fine_cg if level == 0 or mid_cg is None else mid_cg)
+        cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
                                gn_rtol)
     return z - z.mean(), albedo
@@ -728,5 +735,5 @@ def reflectance(z: np.ndarray, light_vec: np.ndarray) -> np.ndarray:
 def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=None) -> float:
     """The shading energy of height `z` (pixel units) on the periodic domain (`dark` and
     `bright`: censored pixels, as in :func:`solve_variational`)."""
-    prob = _Problem(image, weight, light_vec, lam, 1, dark=dark, bright=bright)
+    prob = _Problem(image, weight, light_vec, lam, 1, dark=dark, bright=bright, albedo_bound=False)
     return prob.energy(z.astype(_F), albedo)
