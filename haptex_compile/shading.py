@@ -92,15 +92,18 @@ CENSORED = True
 # photo's tile averaged over many cells: mean error 0.143 -> 0.115; the bench's plain weave
 # 0.038 -> 0.030 and bumps 0.078 -> 0.066; with noise of sigma 0.01 unchanged), for
 # 15-17 % more time at 1 Mpx (bumps, Brownian; one run, with the fused matvec).
+# Coarse pixels partly in shadow or saturated carry no intensity (see solve_variational's
+# censored_data).
 DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=1e-3, albedo_projection=True,
-                      projection_levels=(1,), projection_max_ratio=0.1, bound_noise_sigmas=3.09)
+                      projection_levels=(1,), projection_max_ratio=0.1, bound_noise_sigmas=3.09,
+                      censored_data=False)
 # Method "accurate": more steps and iterations everywhere, converged solves, the albedo
 # projected on every level without sub-pixel roughness (Brownian surfaces, 7 seeds x 2 tilts
 # at 15°: mean a320 error -13 % -> -9 % with the ratio limit). Levels stop once a full step
 # gains less than 0.01 %: same errors on the bench surfaces, 1 Mpx 2.80 -> 2.30 s.
 ACCURATE_SOLVER = dict(coarse_gn=30, mid_gn=8, fine_gn=6, coarse_cg=20, fine_cg=20, tol=0.01,
                        albedo_projection=True, projection_max_ratio=0.1, gn_rtol=1e-4,
-                       bound_noise_sigmas=3.09)
+                       bound_noise_sigmas=3.09, censored_data=False)
 TERMINATOR_FRACTION = 0.25
 OVEREXPOSED_RING = 0.9
 
