@@ -534,12 +534,12 @@ def _uncensored_weight(w, dark, bright):
     Such a pixel's intensity is the mean of its valid sub-pixels only, which is not the
     shading of its mean normal: at an attached shadow's edge the lit part is brighter than
     the whole, beside a saturated patch darker. Fitted as data, those pixels bias the albedo
-    and the slopes near shadows, and the finest level keeps the bias (sphere cap lit at 60°:
-    albedo 0.13 % high from the 64 px level on). Measured on the bench surfaces at 256 px,
-    light given: slants 70-75° (shadows on 5-20 % of the tile), Brownian 0.188 -> 0.075 and
-    0.494 -> 0.199, plain weave 0.163 -> 0.120 and 0.282 -> 0.190, bumps 0.135 -> 0.099
-    (at 75°); plain weave at 60° 0.030 -> 0.015, with noise of sigma 0.01 0.107 -> 0.049;
-    unshadowed images unchanged.
+    and the slopes near shadows, and the finest level keeps the bias. Measured on the bench
+    surfaces at 256 px, light given: slants 70-75° (shadows on 5-30 % of the tile), Brownian
+    0.188 -> 0.075 and 0.494 -> 0.199, plain weave 0.163 -> 0.120 and 0.282 -> 0.190, bumps
+    0.135 -> 0.099 (at 75°); plain weave at 60° 0.030 -> 0.015, with noise of sigma 0.01
+    0.107 -> 0.049; unshadowed images unchanged. (The sphere cap at 60° keeps its albedo
+    0.12 % high: that one comes from the heights the shadow hides, see the bench.)
     """
     mixed = None
     for c in (dark, bright):

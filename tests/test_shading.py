@@ -307,10 +307,10 @@ def test_default_sphere_cap_feels_like_the_true_one(surfaces256, slant, tilt):
 
 
 def test_sphere_cap_at_60_degrees_needs_only_its_shadowed_shading(surfaces256):
-    # The one tactile miss (sphere cap at 60°, a320 +31 %) is the attached shadow's: the same
+    # The one tactile miss (sphere cap at 60°, a320 +30 %) is the attached shadow's: the same
     # solver on the same shading continued below zero (no pixel censored) recovers the cap
-    # (measured: error 0.002, a320 -3 %), and so does the shadowed image with the albedo held
-    # at the true one (0.008, -3 %): the shadow leaves a 0.1 % albedo error undecided, and
+    # (measured: error 0.001, a320 -2 %), and so does the shadowed image with the albedo held
+    # at the true one (0.008, -1 %): the shadow leaves a 0.1 % albedo error undecided, and
     # the surface absorbs it as stripes along the light.
     from haptex_compile.shading_variational import solve_variational
     from haptex_compile.tables import mean_tactile
