@@ -158,12 +158,25 @@ def cases(quick: bool = False) -> list[dict]:
 NOISE_SIGMAS = (0.01, 0.03)
 
 
+def _default_with(patch: dict, img: np.ndarray, light: Light) -> np.ndarray:
+    """Heights (µm) of the default method on a tile with some of ``DEFAULT_SOLVER``'s settings
+    changed (a baseline in the same run)."""
+    from unittest import mock
+
+    with mock.patch.dict(DEFAULT_SOLVER, patch):
+        return shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True).height
+
+
+def _shadowed_fraction(kwargs: dict) -> float:
+    """Share of the tile in attached shadow, from the solver's keyword arguments."""
+    dark = kwargs.get("dark")
+    return 0.0 if dark is None else float(np.mean(dark > 0))
+
+
 def _noise_rows(n: int, sigmas=NOISE_SIGMAS) -> list[str]:
     """Table rows: the default solver on noisy images (Gaussian, fixed seed, clipped to
     [0, 1]; light given, slants 15-60°), against the same solver with the albedo's bound at
     the raw 99.9th percentile (baseline: no allowance for the noise, which raises it)."""
-    from unittest import mock
-
     from haptex_compile.shading_variational import _noise_sigma
 
     rows = []
@@ -179,11 +192,10 @@ def _noise_rows(n: int, sigmas=NOISE_SIGMAS) -> list[str]:
                 img = np.clip(clean + noise, 0.0, 1.0)
                 estimates.append(_noise_sigma(img.astype(np.float32), np.ones(img.shape, np.float32)))
                 for key, patch in (("baseline", {"bound_noise_sigmas": 0.0}), ("default", {})):
-                    with mock.patch.dict(DEFAULT_SOLVER, patch):
-                        r = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True)
-                    tact = _tactile_errors(truth_tactile, _same_rms(r.height, truth), PIXEL_UM)
+                    height = _default_with(patch, img, light)
+                    tact = _tactile_errors(truth_tactile, _same_rms(height, truth), PIXEL_UM)
                     w = worst[key]
-                    w[0] = max(w[0], normalised_height_error(r.height, truth))
+                    w[0] = max(w[0], normalised_height_error(height, truth))
                     w[1] = max(w[1], abs(tact["a40"]))
                     w[2] = max(w[2], abs(tact["a320"]))
             b, d = worst["baseline"], worst["default"]
@@ -199,19 +211,14 @@ def _steep_rows(n: int, lights=STEEP_LIGHTS) -> list[str]:
     """Table rows: steep lights (attached shadows on part of the tile), light given, the
     default solver against the same solver fitting the intensity of coarse pixels partly in
     shadow (baseline: ``censored_data=True``, same run)."""
-    from unittest import mock
-
     rows = []
     for name, truth in _surfaces(n).items():
         cells = []
         for slant, tilt in lights:
             light = Light(slant, tilt)
             img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)
-            errs = []
-            for patch in ({"censored_data": True}, {}):
-                with mock.patch.dict(DEFAULT_SOLVER, patch):
-                    r = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True)
-                errs.append(normalised_height_error(r.height, truth))
+            errs = [normalised_height_error(_default_with(patch, img, light), truth)
+                    for patch in ({"censored_data": True}, {})]
             shadowed = float(np.mean(_censored_pixels(img)[0]))
             cells.append(f"{shadowed:.1%} | {errs[0]:.3f} | {errs[1]:.3f}")
         rows.append(f"| {name} | " + " | ".join(cells) + " |")
@@ -331,9 +338,7 @@ def _energy_check(case: dict, truth_tactile: dict) -> str:
         res = case["results"][key]
         ratio = e_of(res["height_raw_um"] / PIXEL_UM, res["albedo"]) / e_true
         cells.append(f"{ratio:.2f} | {res['error']:.3f} | {res['tactile_signed']['a320']:+.0%}")
-    dark = kwargs.get("dark")
-    shadowed = 0.0 if dark is None else float(np.mean(dark > 0))
-    return (f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {shadowed:.1%} | "
+    return (f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {_shadowed_fraction(kwargs):.1%} | "
             + " | ".join(cells) + f" | {normalised_height_error(polished, truth):.4f} | {a320:+.0%} |")
 
 
@@ -355,9 +360,8 @@ def _shadow_check(case: dict, truth_tactile: dict) -> str:
     for height in (held.astype(float) * PIXEL_UM, z.astype(float) * PIXEL_UM):
         a320 = _tactile_errors(truth_tactile, _same_rms(height, truth), PIXEL_UM)["a320"]
         cells.append(f"{normalised_height_error(height, truth):.3f} | {a320:+.0%}")
-    dark = kwargs.get("dark")
-    shadowed = 0.0 if dark is None else float(np.mean(dark > 0))
-    return f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {shadowed:.1%} | " + " | ".join(cells) + " |"
+    return (f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {_shadowed_fraction(kwargs):.1%} | "
+            + " | ".join(cells) + " |")
 
 
 def _tactile_errors(truth: dict, height_um: np.ndarray, pixel_size_um: float) -> dict:
