@@ -177,13 +177,48 @@ def test_albedo_projection_step_is_the_joint_gauss_newton_step():
     step_fixed = np.linalg.solve(hess, -grad)
     assert np.linalg.norm(step_joint - step_fixed) > 0.1 * np.linalg.norm(step_fixed)  # they differ
 
-    for project, want in ((True, step_joint), (False, step_fixed)):
+    # workers=3: the CG iterations' elementwise work in three blocks of rows (large levels).
+    for project, want, workers in ((True, step_joint, 1), (False, step_fixed, 1), (True, step_joint, 3)):
         prob.project_albedo = project
+        prob.workers = workers
         dz, g = prob.gn_step(z, albedo, 500, 1e-7)
         np.testing.assert_allclose(g.ravel(), grad, rtol=0, atol=1e-4 * np.abs(grad).max())
         diff = dz.ravel() - want
         diff -= diff.mean()  # a uniform offset is the height's null mode: held by 1e-6 only
-        assert np.linalg.norm(diff) <= 1e-3 * np.linalg.norm(want), project
+        assert np.linalg.norm(diff) <= 1e-3 * np.linalg.norm(want), (project, workers)
+
+
+def test_row_blocks_of_the_periodic_y_difference_make_the_whole():
+    from haptex_compile.shading_variational import _dy2, _dy2_rows, _row_blocks
+
+    for n in (3, 5, 12):
+        z = np.random.default_rng(n).standard_normal((n, 4)).astype(np.float32)
+        for parts in (1, 2, 3, 4):
+            blocks = _row_blocks(n, parts)
+            assert [i for b in blocks for i in range(n)[b]] == list(range(n))
+            out = np.full_like(z, np.nan)
+            for b in blocks:
+                _dy2_rows(z, b, out)
+            np.testing.assert_array_equal(out, _dy2(z))
+
+
+def test_threaded_conjugate_gradients_give_identical_heights():
+    # A level of 512 x 512 px runs its CG iterations' elementwise work on two threads, in
+    # blocks of rows, in the single thread's order: the heights must be bit-identical.
+    # Sphere cap at 60°: attached shadows (one-sided terms) and the albedo projection.
+    from haptex_compile.shading import DEFAULT_SOLVER, _censored_pixels, _solve_domain, valid_pixels
+    from haptex_compile.shading_variational import solve_variational
+
+    n = 512
+    light = Light(60.0, 300.0)
+    img = render_lambertian(ts.sphere_cap((n, n), PX), PX, light, 0.8, periodic=True)
+    dom, w, kwargs = _solve_domain(img, valid_pixels(img), _censored_pixels(img), periodic=True)
+    assert np.any(kwargs["dark"] > 0)
+    solver = dict(DEFAULT_SOLVER, projection_levels=(0, 1))
+    one, a1 = solve_variational(dom, w.astype(np.float32), light.vector, 0.8, workers=1, **solver, **kwargs)
+    two, a2 = solve_variational(dom, w.astype(np.float32), light.vector, 0.8, workers=2, **solver, **kwargs)
+    np.testing.assert_array_equal(one, two)
+    assert a1 == a2
 
 
 def test_damped_reflectance_weights_only_the_slope_across_the_light():
