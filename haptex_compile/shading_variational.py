@@ -398,8 +398,9 @@ class _Problem:
         # -> 3.5 ms for the pair of transforms).
         return sfft.irfft2(f, s=self.shape, workers=self.workers, overwrite_x=True)
 
-    def gn_step(self, z, albedo, max_cg, tol):
-        """One Gauss-Newton direction by PCG; returns (dz, energy gradient)."""
+    def gn_step(self, z, albedo, max_cg, tol, previous=()):
+        """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
+        the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
         p, q = _dx(z), _dy(z)
         r, rp, rq = _reflectance(p, q, self.light, self.across_weight)
         res = albedo * r - self.img
@@ -501,15 +502,18 @@ class _Problem:
 
             _run_rows(direction, blocks)
             rz = rz_new
+        if previous:
+            x = _subspace_minimum([x, *previous], [b - rr, *map(matvec, previous)], b)
         return x, grad
 
-    def solve(self, z, albedo, n_gn, max_cg, tol, fit_albedo, gn_rtol=0.0):
+    def solve(self, z, albedo, n_gn, max_cg, tol, fit_albedo, gn_rtol=0.0, subspace_steps=0):
         if self.project_albedo:
             albedo, e = self.fit_albedo(z, albedo)
         else:
             e = self.energy(z, albedo)
+        previous = []  # the last accepted steps, newest first
         for _ in range(n_gn):
-            dz, grad = self.gn_step(z, albedo, max_cg, tol)
+            dz, grad = self.gn_step(z, albedo, max_cg, tol, previous)
             step = 1.0
             accepted = False
             for _ in range(8):  # backtracking: GN may overshoot where R is far from linear
@@ -526,6 +530,8 @@ class _Problem:
             if not accepted:
                 break
             small = step == 1.0 and e - et < gn_rtol * e
+            if subspace_steps:
+                previous = [step * dz, *previous][:subspace_steps]
             z, e = zt, et
             if self.project_albedo:
                 albedo = at
@@ -552,6 +558,32 @@ class _Problem:
             if np.isfinite(a) and a > 0:
                 albedo = min(max(a, self.albedo_min, 1e-3), self.albedo_max)
         return albedo, self.energy(z, albedo, r)
+
+
+def _subspace_minimum(directions, products, b):
+    """The minimum of the quadratic model ``1/2 x.A x - b.x`` over the span of `directions`.
+
+    `products` are the directions times A. The model's 2-3 dimensional restriction is solved
+    exactly; when it is not positive definite (nearly parallel directions, float32 round-off),
+    the first direction is returned unchanged.
+    """
+    k = len(directions)
+    h = np.array([[float(np.vdot(u, av)) for av in products] for u in directions])
+    h = 0.5 * (h + h.T)
+    g = np.array([float(np.vdot(u, b)) for u in directions])
+    scale = np.sqrt(np.abs(np.diag(h)))
+    if not np.all(np.isfinite(h)) or np.any(scale == 0):
+        return directions[0]
+    hn = h / np.outer(scale, scale)
+    if np.linalg.eigvalsh(hn)[0] < 1e-4:
+        return directions[0]
+    coef = np.linalg.solve(hn, g / scale) / scale
+    if not np.all(np.isfinite(coef)):
+        return directions[0]
+    out = directions[0] * _F(coef[0])
+    for c, u in zip(coef[1:k], directions[1:]):
+        out += u * _F(c)
+    return out
 
 
 def _subpixel_variance_ratio(mean, mean_square, weight) -> float:
@@ -663,6 +695,7 @@ def solve_variational(
     subgrid_damping: float | None = None,
     bound_noise_sigmas: float = 0.0,
     censored_data: bool = True,
+    subspace_steps: int = 0,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -780,6 +813,15 @@ def solve_variational(
         fraction) but carry no intensity, see :func:`_uncensored_weight` (the default
         solver's choice; the light search keeps True, measured: the sphere cap's estimate at
         60° moved to 63° without them).
+    subspace_steps : int
+        Join this many previous accepted steps of the level to each Gauss-Newton direction:
+        the step is the minimum of the Gauss-Newton model over their span (one more matvec
+        per previous step), as nonlinear CG joins the previous direction. Each step's
+        truncated CG re-finds the slow directions from scratch; across steps they add up.
+        The slow direction measured: on flat ground the shading does not see slopes across
+        the light at first order, so ridges along the light trade against a higher albedo
+        (the sphere cap at 60°, light given: the default stopped 9 % above its energy's
+        minimum, albedo +0.12 %, a320 +30 %; with 2 steps joined, +0.09 % and +19 %).
 
     Returns
     -------
@@ -825,7 +867,7 @@ def solve_variational(
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
-                               gn_rtol)
+                               gn_rtol, subspace_steps)
     return z - z.mean(), albedo
 
 

@@ -326,8 +326,7 @@ def test_default_sphere_cap_feels_like_the_true_one(surfaces256, slant, tilt):
     # a320 (the rim's crease) is the most fragile: the half-resolution level must converge
     # with the albedo projected, or the finest level starts from an albedo 0.3 % low and
     # stops in a worse minimum (measured before: a320 +30 % at 30°, height error 0.02;
-    # now within 5 % and 0.006). At 60° the shading leaves a320 undetermined (attached
-    # shadow): not asserted, see the bench.
+    # now within 5 % and 0.006). At 60° (attached shadow) see the next test.
     from haptex_compile.tables import mean_tactile
 
     h = surfaces256["sphere"]
@@ -341,27 +340,64 @@ def test_default_sphere_cap_feels_like_the_true_one(surfaces256, slant, tilt):
         assert got[key] / truth[key] - 1 == pytest.approx(0.0, abs=0.10), key
 
 
-def test_sphere_cap_at_60_degrees_needs_only_its_shadowed_shading(surfaces256):
-    # The one tactile miss (sphere cap at 60°, a320 +30 %) is the attached shadow's: the same
-    # solver on the same shading continued below zero (no pixel censored) recovers the cap
-    # (measured: error 0.001, a320 -2 %), and so does the shadowed image with the albedo held
-    # at the true one (0.008, -1 %): the shadow leaves a 0.1 % albedo error undecided, and
-    # the surface absorbs it as stripes along the light.
+def test_sphere_cap_at_60_degrees_meets_the_tactile_target_with_steps_joined(surfaces256, monkeypatch):
+    # At 60° the attached shadow (4 % of the tile) leaves a slow valley: on the flat ground
+    # the shading does not see slopes across the light at first order, so ridges along the
+    # light trade against a higher albedo. Plain Gauss-Newton steps (each CG truncated) stop
+    # in it (measured: albedo +0.12 %, a320 +30 %); joining each step to the previous two
+    # reaches the tactile target (measured: +0.09 %, a320 +16 %, height error 0.016). The
+    # same shading continued below zero (no pixel censored) has no such valley (0.001).
     from haptex_compile.shading_variational import solve_variational
     from haptex_compile.tables import mean_tactile
 
     h = surfaces256["sphere"]
     light = Light(60.0, 300.0)
-    img = (0.8 * reflectance(h / PX, light.vector)).astype(np.float32)
-    assert np.mean(img < 0) > 0.03  # the clipped render's shadow: 4 % of the tile
     truth = mean_tactile(h, PX, periodic=True)
-    z, albedo = solve_variational(img, np.ones_like(img), light.vector, 0.7, **shading.DEFAULT_SOLVER)
-    height = z.astype(float) * PX
+
+    def a320_error(height):
+        got = mean_tactile(height * (np.std(h) / np.std(height)), PX, periodic=True)
+        assert got["a40"] / truth["a40"] - 1 == pytest.approx(0.0, abs=0.02)
+        return got["a320"] / truth["a320"] - 1
+
+    img = render_lambertian(h, PX, light, 0.8, periodic=True)
+    res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
+    assert normalised_height_error(res.height, h) <= 0.02
+    assert abs(a320_error(res.height)) <= 0.20
+    monkeypatch.setitem(shading.DEFAULT_SOLVER, "subspace_steps", 0)
+    plain = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
+    assert a320_error(plain.height) >= 0.25
+    assert plain.albedo > res.albedo > 0.8
+
+    unclipped = (0.8 * reflectance(h / PX, light.vector)).astype(np.float32)
+    assert np.mean(unclipped < 0) > 0.03  # the clipped render's shadow: 4 % of the tile
+    z, albedo = solve_variational(unclipped, np.ones_like(unclipped), light.vector, 0.7,
+                                  **shading.DEFAULT_SOLVER)
     assert albedo == pytest.approx(0.8, rel=1e-3)
-    assert normalised_height_error(height, h) <= 0.01
-    got = mean_tactile(height * (np.std(h) / np.std(height)), PX, periodic=True)
-    for key in ("a40", "a320"):
-        assert got[key] / truth[key] - 1 == pytest.approx(0.0, abs=0.10), key
+    assert normalised_height_error(z.astype(float) * PX, h) <= 0.01
+    assert abs(a320_error(z.astype(float) * PX)) <= 0.10
+
+
+def test_subspace_minimum_of_a_quadratic_model():
+    # The minimum of 1/2 x.A x - b.x over span(V) solves (V^T A V) c = V^T b; a direction
+    # parallel to another leaves the first direction as it was.
+    from haptex_compile.shading_variational import _subspace_minimum
+
+    rng = np.random.default_rng(3)
+    m = rng.standard_normal((16, 16))
+    a = m @ m.T + 16 * np.eye(16)
+    b = rng.standard_normal(16)
+    vs = [rng.standard_normal(16) for _ in range(3)]
+    got = _subspace_minimum([v.astype(np.float32) for v in vs],
+                            [(a @ v).astype(np.float32) for v in vs], b.astype(np.float32))
+    basis = np.stack(vs, axis=1)
+    want = basis @ np.linalg.solve(basis.T @ a @ basis, basis.T @ b)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * np.abs(want).max())
+    model = lambda x: 0.5 * x @ a @ x - b @ x  # noqa: E731
+    assert model(want) < model(vs[0]) and model(want) <= model(got) + 1e-6
+    first = vs[0].astype(np.float32)
+    same = _subspace_minimum([first, 2 * first], [(a @ first).astype(np.float32), (2 * a @ first).astype(np.float32)],
+                             b.astype(np.float32))
+    assert same is first
 
 
 def test_partly_shadowed_coarse_pixels_carry_no_intensity():
