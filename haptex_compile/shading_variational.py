@@ -59,10 +59,10 @@ from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 
 _F = np.float32
 PARALLEL_FFT_MIN_PIXELS = 1 << 18
-# Levels this large also run the conjugate-gradient iterations' elementwise work (the matvec
-# and the vector updates) on `workers` threads, each on a block of rows: numpy releases the
-# GIL on large arrays. The operations and their order are those of one thread, so the
-# results are identical.
+# Levels this large also run each Gauss-Newton step's elementwise work (reflectance, gradient,
+# the CG matvec and vector updates) on `workers` threads, each on a block of rows: numpy
+# releases the GIL on large arrays. The operations and their order are those of one thread
+# (sums over the image stay whole), so the results are identical.
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 
@@ -320,23 +320,26 @@ class _Problem:
                 e += 0.5 * float(np.sum(c_w * c_r * c_r))
         return e
 
-    def censored_terms(self, model):
-        """(weight, residual) of the one-sided terms of the censored pixels at `model`."""
+    def censored_terms(self, model, rows=slice(None)):
+        """(weight, residual) of the one-sided terms of the censored pixels at `model` (the
+        image's `rows`)."""
         out = []
         if self.dark is not None:
-            out.append((self.dark, np.maximum(model - DARK_LEVEL, 0.0)))
+            out.append((self.dark[rows], np.maximum(model - DARK_LEVEL, 0.0)))
         if self.bright is not None:
-            out.append((self.bright, np.minimum(model - BRIGHT_LEVEL, 0.0)))
+            out.append((self.bright[rows], np.minimum(model - BRIGHT_LEVEL, 0.0)))
         return out
 
-    def data_weights(self, res):
+    def data_weights(self, res, rows=slice(None)):
         """Gradient of the data energy with respect to the model image, and the Gauss-Newton
-        weight of each pixel (censored terms count where they are active)."""
+        weight of each pixel (censored terms count where they are active); `res` is the
+        residual on the image's `rows` (all of them for gradient data)."""
+        w = self.w[rows]
         if self.grad_data or (self.dark is None and self.bright is None):
-            return self.data_grad(res), self.w
-        wres = self.w * res
-        w_act = self.w.copy()
-        for c_w, c_r in self.censored_terms(res + self.img):
+            return self.data_grad(res) if self.grad_data else w * res, w
+        wres = w * res
+        w_act = w.copy()
+        for c_w, c_r in self.censored_terms(res + self.img[rows], rows):
             wres += c_w * c_r
             w_act += c_w * (c_r != 0)
         return wres, w_act
@@ -375,13 +378,19 @@ class _Problem:
 
     def precond(self, rp, rq, albedo):
         w = self.w
+        return self.precond_from_sums(
+            (float(np.sum(w * rp * rp)), float(np.sum(w * rp * rq)), float(np.sum(w * rq * rq))), albedo
+        )
+
+    def precond_from_sums(self, sums, albedo):
+        """The preconditioner's inverse symbol from the weighted sums of ``rp²``, ``rp rq``
+        and ``rq²`` over the pixels."""
+        w = self.w
         wsum = float(w.sum()) or 1.0
         # Average reflectance-gradient tensor over the pixels, weighted by data weight; the
         # preconditioner sees the mean data weight, so masked margins are accounted for.
         wm = wsum / w.size
-        txx = float(np.sum(w * rp * rp)) / wsum * wm
-        txy = float(np.sum(w * rp * rq)) / wsum * wm
-        tyy = float(np.sum(w * rq * rq)) / wsum * wm
+        txx, txy, tyy = (t / wsum * wm for t in sums)
         a2 = albedo * albedo
         sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
         if self.grad_data:
@@ -401,28 +410,68 @@ class _Problem:
     def gn_step(self, z, albedo, max_cg, tol, previous=()):
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
         the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
-        p, q = _dx(z), _dy(z)
-        r, rp, rq = _reflectance(p, q, self.light, self.across_weight)
-        res = albedo * r - self.img
-        ja = albedo * rp
-        jb = albedo * rq
-        wres, w = self.data_weights(res)
-        # grad = J^T W res + lam L L z ; D^T = -D for periodic central differences.
-        grad = -(_dx(ja * wres) + _dy(jb * wres)) + self.lam * _lap2(z)
-        if self.lf is not None:
-            grad = grad + self.lowfreq(z)
-        # Halves of the central differences folded into the coefficients, the sign of
-        # D^T = -D into the data weights, and the thin-plate and identity terms into one
-        # filter: the matvec is a large share of each CG iteration (half as many passes,
-        # measured at 1024 px: 11.7 -> 5.7 ms, against 4-6 ms for the preconditioner's FFTs).
-        ha, hb = 0.5 * ja, 0.5 * jb
-        nwa, nwb = -(w * ha), -(w * hb)
-        lam = self.lam
         grad_data = self.grad_data
-        wx, wy = (self.wx, self.wy) if grad_data else (None, None)
         # Row blocks of the elementwise work (one block: a single thread).
         blocks = _row_blocks(z.shape[0], self.workers if self.lf is None and not grad_data else 1)
-        jv, t1, t2, tb = (np.empty(z.shape, _F) for _ in range(4))
+        r, ha, hb, nwa, nwb, fa, fb, grad, b, tb, wr = (np.empty(z.shape, _F) for _ in range(11))
+        sums = [np.empty(z.shape, _F) for _ in range(3)]  # w rp², w rp rq, w rq² (preconditioner)
+        project = self.project_albedo and self._albedo_free(albedo)
+        ua, ub, u = (np.empty(z.shape, _F) for _ in range(3)) if project else (None, None, None)
+        lam_l2 = self.lam * _lap2(z)
+
+        def pixelwise(rows):
+            # Reflectance, residual, Jacobian (halves of the central differences folded into
+            # the coefficients, the sign of D^T = -D into the data weights), the gradient's
+            # and the projection's factors, and the preconditioner's tensor.
+            p = _dx(z[rows])
+            q = _dy2_rows(z, rows, tb)
+            q *= 0.5
+            r_, rp_, rq_ = _reflectance(p, q, self.light, self.across_weight)
+            r[rows] = r_
+            res = albedo * r_ - self.img[rows]
+            ja, jb = albedo * rp_, albedo * rq_
+            wres, w = self.data_weights(res, rows)
+            np.multiply(ja, wres, out=fa[rows])
+            np.multiply(jb, wres, out=fb[rows])
+            np.multiply(ja, 0.5, out=ha[rows])
+            np.multiply(jb, 0.5, out=hb[rows])
+            np.negative(np.multiply(w, ha[rows], out=nwa[rows]), out=nwa[rows])
+            np.negative(np.multiply(w, hb[rows], out=nwb[rows]), out=nwb[rows])
+            w0 = self.w[rows]
+            wr_ = np.multiply(w0, r_, out=wr[rows])
+            if project:
+                np.multiply(ja, wr_, out=ua[rows])
+                np.multiply(jb, wr_, out=ub[rows])
+            np.multiply(np.multiply(w0, rp_, out=sums[0][rows]), rp_, out=sums[0][rows])
+            np.multiply(np.multiply(w0, rp_, out=sums[1][rows]), rq_, out=sums[1][rows])
+            np.multiply(np.multiply(w0, rq_, out=sums[2][rows]), rq_, out=sums[2][rows])
+
+        def minus_divergence(f1, f2, rows, out):
+            # -(D_x f1 + D_y f2) on these rows into out's (periodic central differences)
+            o = _dx2(f1[rows], out[rows])
+            o *= 0.5
+            o2 = _dy2_rows(f2, rows, tb)
+            o2 *= 0.5
+            np.add(o, o2, out=o)
+            np.negative(o, out=o)
+            return o
+
+        def gradient(rows):
+            # grad = J^T W res + lam L L z, and the CG's right-hand side -grad
+            g = minus_divergence(fa, fb, rows, grad)
+            g += lam_l2[rows]
+            np.negative(g, out=b[rows])
+            if project:
+                minus_divergence(ua, ub, rows, u)
+
+        _run_rows(pixelwise, blocks)
+        _run_rows(gradient, blocks)
+        if self.lf is not None:
+            grad = grad + self.lowfreq(z)
+            b = -grad
+        lam = self.lam
+        wx, wy = (self.wx, self.wy) if grad_data else (None, None)
+        jv, t1, t2 = (np.empty(z.shape, _F) for _ in range(3))
         vp = None  # (u, s) of the variable projection, when it applies
 
         def matvec(v):
@@ -461,17 +510,15 @@ class _Problem:
                 out -= vp[0] * (float(np.vdot(vp[0], v)) / vp[1])
             return out
 
-        wr = self.w * r
         s_vp = float(np.vdot(wr, r))
-        if self.project_albedo and self._albedo_free(albedo) and s_vp > 0:
+        if project and s_vp > 0:
             # Variable projection (Golub-Pereyra): the albedo, refitted after every step, is
             # eliminated, so the step solves the Schur complement J^T W J - u u^T / s of the
             # joint (height, albedo) Gauss-Newton system, with u = J^T W r and s = r^T W r:
             # one step may trade slope against albedo, which alternating steps do slowly.
-            vp = ((-(_dx(ja * wr) + _dy(jb * wr))).astype(_F), s_vp)
+            vp = (u, s_vp)
 
-        inv_sym = self.precond(rp, rq, albedo)
-        b = -grad.astype(_F)
+        inv_sym = self.precond_from_sums([float(np.sum(t)) for t in sums], albedo)
         x = np.zeros_like(b)
         rr = b.copy()
         zz = self.apply_pre(inv_sym, rr)
@@ -750,7 +797,9 @@ def solve_variational(
     max_levels : int
         Most pyramid levels (1 = full resolution only).
     workers : int
-        FFT threads.
+        Threads of the FFTs and, on levels of ``PARALLEL_FFT_MIN_PIXELS`` or more, of each
+        Gauss-Newton step's elementwise work (in blocks of rows; the same heights as one
+        thread, bit for bit).
     data_shape : (int, int), optional
         Size of the data region (non-periodic images embedded in a larger domain).
     lowfreq_weight : float
