@@ -316,11 +316,30 @@ def _undamped_height(case: dict) -> np.ndarray:
     return z.astype(float) * PIXEL_UM
 
 
+POLISH_ROUNDS = 40
+
+
+def _polished_truth(img, weight, light: Light, truth: np.ndarray, kwargs: dict):
+    """The minimum of the solver's energy nearest the true heights: the finest level only,
+    started from the truth (albedo projected, steps joined), rounds of 20 Gauss-Newton steps of
+    100 CG iterations until a round lowers the energy by less than 1e-6 of it (at most
+    `POLISH_ROUNDS`). Returns (z in pixel units, albedo, energy, rounds)."""
+    z, albedo = (truth - truth.mean()) / PIXEL_UM, ALBEDO
+    e_prev = np.inf
+    for rounds in range(1, POLISH_ROUNDS + 1):
+        z, albedo = solve_variational(img, weight, light.vector, albedo, z0=z, max_levels=1, fine_gn=20,
+                                      fine_cg=100, albedo_projection=True, subspace_steps=2, **kwargs)
+        e = energy(img, weight, light.vector, albedo, z, **kwargs)
+        if e >= e_prev * (1 - 1e-6):
+            break
+        e_prev = e
+    return z, albedo, e, rounds
+
+
 def _energy_check(case: dict, truth_tactile: dict) -> str:
-    """A table row: the energies of the default and accurate solvers' heights over the true
-    surface's, and what each gives in a320 (the true heights polished by the solver's own
-    fine level, so that all three are minima of the same energy). The solvers' signed tactile
-    errors must be in the case's results already."""
+    """A table row: the energies of the default and accurate solvers' heights over the
+    minimum nearest the true surface (:func:`_polished_truth`), and what each gives in a320.
+    The solvers' signed tactile errors must be in the case's results already."""
     truth = case["height_true_um"]
     light = Light(case["slant_deg"], case["tilt_deg"])
     img, weight, kwargs = _solver_inputs(case)
@@ -328,18 +347,17 @@ def _energy_check(case: dict, truth_tactile: dict) -> str:
     def e_of(z, albedo):
         return energy(img, weight, light.vector, albedo, z, **kwargs)
 
-    z, albedo = solve_variational(img, weight, light.vector, ALBEDO, z0=(truth - truth.mean()) / PIXEL_UM,
-                                  max_levels=1, fine_gn=10, fine_cg=30, **kwargs)
-    e_true = e_of(z, albedo)
+    z, albedo, e_true, rounds = _polished_truth(img, weight, light, truth, kwargs)
     polished = z.astype(float) * PIXEL_UM
     a320 = _tactile_errors(truth_tactile, _same_rms(polished, truth), PIXEL_UM)["a320"]
     cells = []
     for key in ("default", "accurate"):
         res = case["results"][key]
         ratio = e_of(res["height_raw_um"] / PIXEL_UM, res["albedo"]) / e_true
-        cells.append(f"{ratio:.2f} | {res['error']:.3f} | {res['tactile_signed']['a320']:+.0%}")
+        cells.append(f"{ratio:.3f} | {res['error']:.3f} | {res['tactile_signed']['a320']:+.0%}")
     return (f"| {case['slant_deg']:g}, {case['tilt_deg']:g} | {_shadowed_fraction(kwargs):.1%} | "
-            + " | ".join(cells) + f" | {normalised_height_error(polished, truth):.4f} | {a320:+.0%} |")
+            + " | ".join(cells) + f" | {normalised_height_error(polished, truth):.4f} | {a320:+.0%}"
+            f" | {albedo / ALBEDO - 1:+.3%} | {rounds} |")
 
 
 def _shadow_check(case: dict, truth_tactile: dict) -> str:
@@ -516,13 +534,16 @@ def run(quick: bool = False) -> str:
                   "| surface | slant 0° | 5° | 10° |", "| --- | --- | --- | --- |", *_near_frontal_rows(n)]
     spheres = [c for c in rows if c["surface"].startswith("sphere") and 15 <= c["slant_deg"] <= 60]
     lines += ["", "Sphere cap, light given: the energies of the default and accurate solvers' heights"
-              " over the true surface's (the true heights polished by the solver's finest level: a"
-              " minimum of the same energy), and what each gives. A ratio well above 1: the solver"
-              " stopped in a worse minimum than the truth's, and its a320 error is the solver's; a"
-              " ratio near 1 with a large a320 error: the energy does not fix what a320 measures:", "",
+              " over the energy's minimum nearest the true surface (the true heights polished to"
+              " convergence by the solver's finest level: rounds of 20 steps of 100 CG iterations"
+              " until a round gains less than 1e-6), and what each gives. A ratio above 1: the solver"
+              " stopped short of that minimum, and the a320 error between the two is the solver's;"
+              " the minimum's own error is the energy's (its regulariser and, at 60°, the attached"
+              " shadow):", "",
               "| slant, tilt (°) | shadowed pixels | default: energy ratio | error | a320 error |"
-              " accurate: energy ratio | error | a320 error | true polished: error | a320 error |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+              " accurate: energy ratio | error | a320 error | minimum: error | a320 error |"
+              " albedo error | rounds |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
               *(_energy_check(c, truth_tactile[c["surface"]]) for c in spheres)]
     lines += ["", "Sphere cap, light given: where the default's a320 error comes from. Its fitted albedo"
               " against the true one (0.8); the default with the albedo held at the true value; and the"
