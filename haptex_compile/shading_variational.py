@@ -47,6 +47,7 @@ a wrong light of a few degrees costs a lot (see ``bench/bench_shading.py``).
 """
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Collection
 from concurrent.futures import ThreadPoolExecutor
@@ -65,6 +66,18 @@ PARALLEL_FFT_MIN_PIXELS = 1 << 18
 # (sums over the image stay whole), so the results are identical.
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
+
+
+def _forget_pools() -> None:
+    """In a forked child (a process pool compiling several inputs): the parent's threads
+    are not there, so its pools would never run a block; start afresh."""
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 def _row_blocks(rows: int, parts: int) -> list[slice]:
@@ -192,6 +205,30 @@ def _lap2(z: np.ndarray, scale: float = 1.0, shift: float = 0.0) -> np.ndarray:
     kernel = scale * _BIHARMONIC
     kernel[2, 2] += shift
     return _filter_periodic(z, kernel)
+
+
+def _lap_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
+    """Rows `rows` of :func:`_lap` of `z`, written to ``out[rows]`` (returned), with the
+    same sums in the same order."""
+    n = z.shape[0]
+    r0, r1 = rows.start, rows.stop
+    o = np.multiply(z[rows], -4.0, out=out[rows])
+    if r0 >= 1:  # z[i - 1]
+        o += z[r0 - 1:r1 - 1]
+    else:
+        o[1:] += z[0:r1 - 1]
+        o[0] += z[-1]
+    if r1 <= n - 1:  # z[i + 1]
+        o += z[r0 + 1:r1 + 1]
+    else:
+        o[:-1] += z[r0 + 1:n]
+        o[-1] += z[0]
+    zb = z[rows]
+    o[:, 1:] += zb[:, :-1]
+    o[:, 0] += zb[:, -1]
+    o[:, :-1] += zb[:, 1:]
+    o[:, -1] += zb[:, 0]
+    return o
 
 
 def _lap(z: np.ndarray) -> np.ndarray:
@@ -350,31 +387,67 @@ class _Problem:
             return _fxt(self.wx * _fx(res)) + _fyt(self.wy * _fy(res))
         return self.w * res
 
+    def blocks(self, rows: int) -> list[slice]:
+        """Row blocks of the elementwise work, one per thread (one block: a single thread;
+        gradient data and the low-frequency penalty are not split)."""
+        return _row_blocks(rows, self.workers if self.lf is None and not self.grad_data else 1)
+
     def energy(self, z, albedo, r=None):
         """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
         if r is None:
             r = self.reflectance(z)
-        res = albedo * r - self.img
-        e = self.data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
+        if self.grad_data:
+            res = albedo * r - self.img
+            e = self.data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
+        else:
+            # The terms' pixel values in row blocks, each sum over the whole image (the same
+            # sums as data_energy's).
+            n_censored = (self.dark is not None) + (self.bright is not None)
+            terms = [np.empty(z.shape, _F) for _ in range(2 + n_censored)]
+
+            def pixelwise(rows):
+                res = albedo * r[rows] - self.img[rows]
+                np.multiply(np.multiply(self.w[rows], res, out=terms[0][rows]), res, out=terms[0][rows])
+                for k, (c_w, c_r) in enumerate(self.censored_terms(res + self.img[rows], rows)):
+                    np.multiply(np.multiply(c_w, c_r, out=terms[2 + k][rows]), c_r, out=terms[2 + k][rows])
+                np.square(_lap_rows(z, rows, terms[1]), out=terms[1][rows])
+
+            _run_rows(pixelwise, self.blocks(z.shape[0]))
+            e = 0.5 * float(np.sum(terms[0]))
+            for t in terms[2:]:
+                e += 0.5 * float(np.sum(t))
+            e += 0.5 * self.lam * float(np.sum(terms[1]))
         if self.lf is not None:
             e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
         return e
 
     def reflectance(self, z):
-        if self.across_weight != 1.0:
-            return _reflectance(_dx(z), _dy(z), self.light, self.across_weight)[0]
+        out = np.empty(z.shape, _F)
+        tmp = np.empty(z.shape, _F)
         lx, ly, lz = (float(c) for c in self.light)
-        p = _dx2(z)
-        q = _dy2(z)
-        # R = (lz - p lx - q ly) / sqrt(1 + p² + q²) with p, q the halved differences.
-        num = lz - 0.5 * (lx * p + ly * q)
-        g = p * p
-        g += q * q
-        g *= 0.25
-        g += 1.0
-        np.sqrt(g, out=g)
-        num /= g
-        return num
+
+        def rows_of(rows):
+            if self.across_weight != 1.0:
+                q = _dy2_rows(z, rows, tmp)
+                q *= 0.5
+                out[rows] = _reflectance(_dx(z[rows]), q, self.light, self.across_weight)[0]
+                return
+            p = _dx2(z[rows])
+            q = _dy2_rows(z, rows, tmp)
+            # R = (lz - p lx - q ly) / sqrt(1 + p² + q²) with p, q the halved differences.
+            num = lx * p
+            num += ly * q
+            num *= 0.5
+            np.subtract(lz, num, out=num)
+            g = p * p
+            g += q * q
+            g *= 0.25
+            g += 1.0
+            np.sqrt(g, out=g)
+            np.divide(num, g, out=out[rows])
+
+        _run_rows(rows_of, self.blocks(z.shape[0]))
+        return out
 
     def precond(self, rp, rq, albedo):
         w = self.w
@@ -599,9 +672,17 @@ class _Problem:
         if self.grad_data:  # the albedo only scales the slopes: nothing to fit
             return albedo, self.energy(z, albedo, r)
         w = self.w
-        den = float(np.sum(w * r * r))
+        wrr, wri = np.empty(z.shape, _F), np.empty(z.shape, _F)
+
+        def pixelwise(rows):
+            wr = w[rows] * r[rows]
+            np.multiply(wr, r[rows], out=wrr[rows])
+            np.multiply(wr, self.img[rows], out=wri[rows])
+
+        _run_rows(pixelwise, self.blocks(z.shape[0]))
+        den = float(np.sum(wrr))
         if den > 0:
-            a = float(np.sum(w * r * self.img)) / den
+            a = float(np.sum(wri)) / den
             if np.isfinite(a) and a > 0:
                 albedo = min(max(a, self.albedo_min, 1e-3), self.albedo_max)
         return albedo, self.energy(z, albedo, r)

@@ -2,6 +2,8 @@
 stability and physical scale. Ground truth comes from haptex_compile.known_surfaces."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -188,23 +190,25 @@ def test_albedo_projection_step_is_the_joint_gauss_newton_step():
         assert np.linalg.norm(diff) <= 1e-3 * np.linalg.norm(want), (project, workers)
 
 
-def test_row_blocks_of_the_periodic_y_difference_make_the_whole():
-    from haptex_compile.shading_variational import _dy2, _dy2_rows, _row_blocks
+def test_row_blocks_of_the_periodic_differences_make_the_whole():
+    # Bit for bit: the threaded levels must give the heights of one thread.
+    from haptex_compile.shading_variational import _dy2, _dy2_rows, _lap, _lap_rows, _row_blocks
 
     for n in (3, 5, 12):
         z = np.random.default_rng(n).standard_normal((n, 4)).astype(np.float32)
         for parts in (1, 2, 3, 4):
             blocks = _row_blocks(n, parts)
             assert [i for b in blocks for i in range(n)[b]] == list(range(n))
-            out = np.full_like(z, np.nan)
-            for b in blocks:
-                _dy2_rows(z, b, out)
-            np.testing.assert_array_equal(out, _dy2(z))
+            for rows_fn, whole in ((_dy2_rows, _dy2(z)), (_lap_rows, _lap(z))):
+                out = np.full_like(z, np.nan)
+                for b in blocks:
+                    rows_fn(z, b, out)
+                np.testing.assert_array_equal(out, whole)
 
 
-def test_threaded_conjugate_gradients_give_identical_heights():
-    # A level of 512 x 512 px runs its CG iterations' elementwise work on two threads, in
-    # blocks of rows, in the single thread's order: the heights must be bit-identical.
+def test_threaded_levels_give_identical_heights():
+    # A level of 512 x 512 px runs its Gauss-Newton steps' elementwise work on two threads,
+    # in blocks of rows, in the single thread's order: the heights must be bit-identical.
     # Sphere cap at 60°: attached shadows (one-sided terms) and the albedo projection.
     from haptex_compile.shading import DEFAULT_SOLVER, _censored_pixels, _solve_domain, valid_pixels
     from haptex_compile.shading_variational import solve_variational
@@ -219,6 +223,29 @@ def test_threaded_conjugate_gradients_give_identical_heights():
     two, a2 = solve_variational(dom, w.astype(np.float32), light.vector, 0.8, workers=2, **solver, **kwargs)
     np.testing.assert_array_equal(one, two)
     assert a1 == a2
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork here")
+def test_threaded_level_runs_in_a_forked_child():
+    # haptex-compile --jobs forks worker processes; a child must not wait on the parent's
+    # row threads, which it does not have.
+    import multiprocessing
+
+    from haptex_compile.shading_variational import solve_variational
+
+    n = 512
+    light = Light(45.0, 200.0)
+    img = render_lambertian(ts.random_bumps((n, n), PX, seed=2), PX, light, 0.8, periodic=True)
+    img = img.astype(np.float32)
+    solve_variational(img, np.ones_like(img), light.vector, 0.8, max_levels=1, fine_gn=1)  # the pool exists
+    ctx = multiprocessing.get_context("fork")
+    child = ctx.Process(target=solve_variational, args=(img, np.ones_like(img), light.vector, 0.8),
+                        kwargs=dict(max_levels=1, fine_gn=1))
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+    assert child.exitcode == 0
 
 
 def test_damped_reflectance_weights_only_the_slope_across_the_light():
