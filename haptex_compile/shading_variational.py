@@ -59,11 +59,17 @@ import cv2
 from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 
 _F = np.float32
-PARALLEL_FFT_MIN_PIXELS = 1 << 18
-# Levels this large also run each Gauss-Newton step's elementwise work (reflectance, gradient,
-# the CG matvec and vector updates) on `workers` threads, each on a block of rows: numpy
+# Coarse levels: weight of the squared slope across the light in R's normalisation,
+# 1 / (1 + SUBGRID_DAMPING * sub-pixel / resolved image variance) (see solve_variational).
+SUBGRID_DAMPING = 2.0
+# Levels of at least this many pixels use `workers` threads for their FFTs (smaller ones run
+# faster on one: measured, a 2-thread FFT of 128 x 128 costs more) and also run each
+# Gauss-Newton step's elementwise work (reflectance, gradient, the CG matvec and vector
+# updates, the line search's energy) on `workers` threads, each on a block of rows: numpy
 # releases the GIL on large arrays. The operations and their order are those of one thread
-# (sums over the image stay whole), so the results are identical.
+# (sums over the image stay whole), so the results are identical (at 256 x 256 px the
+# threads cost more than they gain: a 256 px solve 66 -> 103 ms).
+PARALLEL_FFT_MIN_PIXELS = 1 << 18
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 
@@ -105,24 +111,6 @@ def _run_rows(fn: Callable[[slice], None], blocks: list[slice]) -> None:
             future.result()
 
 
-def _dy2_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
-    """Rows `rows` of :func:`_dy2` of `z` (periodic), written to ``out[rows]``, which is
-    returned."""
-    n = z.shape[0]
-    r0, r1 = rows.start, rows.stop
-    i0, i1 = max(r0, 1), min(r1, n - 1)
-    if i1 > i0:
-        np.subtract(z[i0 + 1:i1 + 1], z[i0 - 1:i1 - 1], out=out[i0:i1])
-    if r0 == 0:
-        np.subtract(z[1], z[-1], out=out[0])
-    if r1 == n:
-        np.subtract(z[0], z[-2], out=out[-1])
-    return out[rows]
-# Coarse levels: weight of the squared slope across the light in R's normalisation,
-# 1 / (1 + SUBGRID_DAMPING * sub-pixel / resolved image variance) (see solve_variational).
-SUBGRID_DAMPING = 2.0
-
-
 def _dx2(z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Twice the periodic central difference along columns (x): z[j+1] - z[j-1] (into `out`,
     not `z`, when given)."""
@@ -141,6 +129,21 @@ def _dy2(z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     np.subtract(z[1], z[-1], out=out[0])
     np.subtract(z[0], z[-2], out=out[-1])
     return out
+
+
+def _dy2_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
+    """Rows `rows` of :func:`_dy2` of `z` (periodic), written to ``out[rows]``, which is
+    returned."""
+    n = z.shape[0]
+    r0, r1 = rows.start, rows.stop
+    i0, i1 = max(r0, 1), min(r1, n - 1)
+    if i1 > i0:
+        np.subtract(z[i0 + 1:i1 + 1], z[i0 - 1:i1 - 1], out=out[i0:i1])
+    if r0 == 0:
+        np.subtract(z[1], z[-1], out=out[0])
+    if r1 == n:
+        np.subtract(z[0], z[-2], out=out[-1])
+    return out[rows]
 
 
 def _dx(z: np.ndarray) -> np.ndarray:
@@ -490,8 +493,7 @@ class _Problem:
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
         the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
         grad_data = self.grad_data
-        # Row blocks of the elementwise work (one block: a single thread).
-        blocks = _row_blocks(z.shape[0], self.workers if self.lf is None and not grad_data else 1)
+        blocks = self.blocks(z.shape[0])
         r, ha, hb, nwa, nwb, fa, fb, grad, b, tb, wr = (np.empty(z.shape, _F) for _ in range(11))
         sums = [np.empty(z.shape, _F) for _ in range(3)]  # w rp², w rp rq, w rq² (preconditioner)
         project = self.project_albedo and self._albedo_free(albedo)
