@@ -622,6 +622,8 @@ class _Problem:
                 break
             zz = self.apply_pre(inv_sym, rr)
             rz_new = float(np.vdot(rr, zz))
+            if not rz_new > 0:  # nothing left that the preconditioner lets through
+                break
             beta = rz_new / rz
 
             def direction(rows):  # d = beta d + zz
