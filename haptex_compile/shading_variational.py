@@ -317,6 +317,8 @@ class _Problem:
                 self.albedo_min -= bound_noise_sigmas * _noise_sigma(self.img, self.w)
         self.albedo_max = 1e3
         self.project_albedo = False
+        # Hold the waves with no slope along the light (see solve_variational's hold_from_level).
+        self.hold_across_waves = False
         if gradient_data:
             w = self.w
             self.wx = w * np.roll(w, -1, axis=1)
@@ -480,7 +482,16 @@ class _Problem:
         sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
         if self.lf is not None:
             sym = sym + self.lf
-        return (1.0 / sym).astype(_F)
+        inv = (1.0 / sym).astype(_F)
+        if self.hold_across_waves:
+            # CG's directions are preconditioned residuals: with these waves' symbol at 0 the
+            # step never contains them.
+            lx, ly = float(self.light[0]), float(self.light[1])
+            along = (lx * self.sx + ly * self.sy) ** 2
+            held = along <= 1e-9 * (lx * lx + ly * ly)
+            held[0, 0] = False
+            inv[held] = 0.0
+        return inv
 
     def apply_pre(self, inv_sym, v):
         f = sfft.rfft2(v, workers=self.workers)
@@ -834,6 +845,7 @@ def solve_variational(
     bound_noise_sigmas: float = 0.0,
     censored_data: bool = True,
     subspace_steps: int = 0,
+    hold_from_level: int | None = None,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -962,6 +974,13 @@ def solve_variational(
         the light at first order, so ridges along the light trade against a higher albedo
         (the sphere cap at 60°, light given: the default stopped 9 % above its energy's
         minimum, albedo +0.12 %, a320 +30 %; with 2 steps joined, +0.09 % and +19 %).
+    hold_from_level : int, optional
+        On this pyramid level and coarser ones (0 = full resolution), hold the waves that have
+        no slope along the light (the steps leave them as they are: their preconditioner
+        symbol is 0). On a periodic domain they exist when the light runs along its axes or
+        diagonals; the shading sees them only at second order, and a coarse level's
+        averaged, darkened image sets them wrong. None = hold nothing. See
+        ``shading.ALIGNED_TILT_DEG``.
 
     Returns
     -------
@@ -1004,6 +1023,7 @@ def solve_variational(
         prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level and not gradient_data
         prob.project_albedo &= projection_levels is None or level in projection_levels
         prob.project_albedo &= ratios[level] <= projection_max_ratio
+        prob.hold_across_waves = hold_from_level is not None and level >= hold_from_level
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
