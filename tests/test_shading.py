@@ -553,7 +553,7 @@ def test_grazing_light_is_stable_and_warned(bumps128):
     assert normalised_height_error(res.height, bumps128) < 1.0
 
 
-def test_light_along_a_tile_axis_or_diagonal_is_warned(surfaces256):
+def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_three_starts(surfaces256):
     # A wave of one cycle per tile along x has no slope along a light at tilt 90° or 270°:
     # the shading sees it only at second order. The directions across the tile-sized waves
     # (1, 0), (0, 1), (1, 1), (1, -1) are the axes and, for a w x h tile, the diagonals at
