@@ -357,16 +357,10 @@ class _Problem:
         f *= self.lf
         return sfft.irfft2(f, s=self.shape, workers=self.workers).astype(_F)
 
-    def data_energy(self, res):
-        if self.grad_data:
-            rx, ry = _fx(res), _fy(res)
-            return 0.5 * float(np.sum(self.wx * rx * rx) + np.sum(self.wy * ry * ry))
-        e = 0.5 * float(np.sum(self.w * res * res))
-        if self.dark is not None or self.bright is not None:
-            model = res + self.img
-            for c_w, c_r in self.censored_terms(model):
-                e += 0.5 * float(np.sum(c_w * c_r * c_r))
-        return e
+    def gradient_data_energy(self, res):
+        """Data energy of gradient data (intensity data: see :meth:`energy`)."""
+        rx, ry = _fx(res), _fy(res)
+        return 0.5 * float(np.sum(self.wx * rx * rx) + np.sum(self.wy * ry * ry))
 
     def censored_terms(self, model, rows=slice(None)):
         """(weight, residual) of the one-sided terms of the censored pixels at `model` (the
@@ -384,7 +378,7 @@ class _Problem:
         residual on the image's `rows` (all of them for gradient data)."""
         w = self.w[rows]
         if self.grad_data or (self.dark is None and self.bright is None):
-            return self.data_grad(res) if self.grad_data else w * res, w
+            return self.gradient_data_grad(res) if self.grad_data else w * res, w
         wres = w * res
         w_act = w.copy()
         for c_w, c_r in self.censored_terms(res + self.img[rows], rows):
@@ -392,11 +386,9 @@ class _Problem:
             w_act += c_w * (c_r != 0)
         return wres, w_act
 
-    def data_grad(self, res):
-        """Derivative of the data energy with respect to the residual image."""
-        if self.grad_data:
-            return _fxt(self.wx * _fx(res)) + _fyt(self.wy * _fy(res))
-        return self.w * res
+    def gradient_data_grad(self, res):
+        """Derivative of the gradient data's energy with respect to the residual image."""
+        return _fxt(self.wx * _fx(res)) + _fyt(self.wy * _fy(res))
 
     def blocks(self, rows: int) -> list[slice]:
         """Row blocks of the elementwise work, one per thread (one block: a single thread;
@@ -409,10 +401,10 @@ class _Problem:
             r = self.reflectance(z)
         if self.grad_data:
             res = albedo * r - self.img
-            e = self.data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
+            e = self.gradient_data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
         else:
-            # The terms' pixel values in row blocks, each sum over the whole image (the same
-            # sums as data_energy's).
+            # The terms' pixel values in row blocks, each summed over the whole image (sums
+            # whole: the same value on any number of threads).
             n_censored = (self.dark is not None) + (self.bright is not None)
             terms = [np.empty(z.shape, _F) for _ in range(2 + n_censored)]
 
@@ -460,13 +452,7 @@ class _Problem:
         _run_rows(rows_of, self.blocks(z.shape[0]))
         return out
 
-    def precond(self, rp, rq, albedo):
-        w = self.w
-        return self.precond_from_sums(
-            (float(np.sum(w * rp * rp)), float(np.sum(w * rp * rq)), float(np.sum(w * rq * rq))), albedo
-        )
-
-    def precond_from_sums(self, sums, albedo):
+    def precond(self, sums, albedo):
         """The preconditioner's inverse symbol from the weighted sums of ``rp²``, ``rp rq``
         and ``rq²`` over the pixels."""
         w = self.w
@@ -610,7 +596,7 @@ class _Problem:
             # one step may trade slope against albedo, which alternating steps do slowly.
             vp = (u, s_vp)
 
-        inv_sym = self.precond_from_sums([float(np.sum(t)) for t in sums], albedo)
+        inv_sym = self.precond([float(np.sum(t)) for t in sums], albedo)
         x = np.zeros_like(b)
         rr = b.copy()
         zz = self.apply_pre(inv_sym, rr)
@@ -716,7 +702,6 @@ def _subspace_minimum(directions, products, b):
     exactly; when it is not positive definite (nearly parallel directions, float32 round-off),
     the first direction is returned unchanged.
     """
-    k = len(directions)
     h = np.array([[float(np.vdot(u, av)) for av in products] for u in directions])
     h = 0.5 * (h + h.T)
     g = np.array([float(np.vdot(u, b)) for u in directions])
@@ -730,7 +715,7 @@ def _subspace_minimum(directions, products, b):
     if not np.all(np.isfinite(coef)):
         return directions[0]
     out = directions[0] * _F(coef[0])
-    for c, u in zip(coef[1:k], directions[1:]):
+    for c, u in zip(coef[1:], directions[1:]):
         out += u * _F(c)
     return out
 
