@@ -392,8 +392,8 @@ class _Problem:
 
     def blocks(self, rows: int) -> list[slice]:
         """Row blocks of the elementwise work, one per thread (one block: a single thread;
-        gradient data and the low-frequency penalty are not split)."""
-        return _row_blocks(rows, self.workers if self.lf is None and not self.grad_data else 1)
+        gradient data are not split)."""
+        return _row_blocks(rows, 1 if self.grad_data else self.workers)
 
     def energy(self, z, albedo, r=None):
         """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
@@ -831,6 +831,8 @@ def solve_variational(
     censored_data: bool = True,
     subspace_steps: int = 0,
     hold_from_level: int | None = None,
+    lowfreq_check_level: int | None = None,
+    lowfreq_reject_ratio: float = np.inf,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -966,6 +968,15 @@ def solve_variational(
         diagonals; the shading sees them only at second order, and a coarse level's
         averaged, darkened image sets them wrong. None = hold nothing. See
         ``shading.ALIGNED_TILT_DEG``.
+    lowfreq_check_level, lowfreq_reject_ratio : int or None, float
+        Test the `lowfreq_weight` prior on this pyramid level (the coarsest if the pyramid
+        is shorter; None = no test): the levels down to it are solved again without the
+        prior, and if the prior's result has more than `lowfreq_reject_ratio` times the
+        energy (data and thin plate, without the prior) of the result without it, the data
+        contradict the prior and the solve goes on without it. A scene that is not flat
+        at the image's scale (an object on a flat ground) is flattened by the prior and
+        its shading then fits badly; a texture that the prior suits fits about as well with
+        it (see ``shading.LOWFREQ_REJECT_RATIO``).
 
     Returns
     -------
@@ -990,15 +1001,18 @@ def solve_variational(
         zf = z0.astype(_F)
         z = cv2.resize(zf, pyramid[-1][0].shape[::-1], interpolation=cv2.INTER_AREA)
         z = z * (pyramid[-1][0].shape[1] / zf.shape[1])
-    for level in range(len(pyramid) - 1, -1, -1):
+
+    def run_level(level, z, albedo, prior_weight):
+        """Solve one level from `z` (None: flat) with the low-frequency prior of weight
+        `prior_weight`; returns (z, albedo, the level's problem)."""
         img, w, d, b = pyramid[level]
         if not censored_data:
             w = _uncensored_weight(w, d, b)
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
         lowfreq = None
-        if lowfreq_weight > 0 and data_shape is not None:
+        if prior_weight > 0 and data_shape is not None:
             side = max(data_shape) * img.shape[1] / image.shape[1]
-            lowfreq = (lowfreq_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
+            lowfreq = (prior_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level,
@@ -1013,6 +1027,21 @@ def solve_variational(
         cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
                                gn_rtol, subspace_steps)
+        return z, albedo, prob
+
+    top = len(pyramid) - 1
+    check = (lowfreq_check_level is not None and lowfreq_weight > 0 and data_shape is not None)
+    check_level = min(lowfreq_check_level, top) if check else -1
+    z_start, albedo_start = z, albedo
+    for level in range(top, -1, -1):
+        z, albedo, _ = run_level(level, z, albedo, lowfreq_weight)
+        if level == check_level:
+            z_free, albedo_free = z_start, albedo_start
+            for free_level in range(top, level - 1, -1):
+                z_free, albedo_free, free = run_level(free_level, z_free, albedo_free, 0.0)
+            # Both energies without the prior (`free` has none).
+            if free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free):
+                z, albedo, lowfreq_weight = z_free, albedo_free, 0.0
     return z - z.mean(), albedo
 
 

@@ -523,6 +523,25 @@ def test_non_periodic_image_beats_tsai_shah():
     assert err < normalised_height_error(tsai_shah(img, light, pixel_size_um=PX), h)
 
 
+def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monkeypatch):
+    # A plain image's flat-on-average prior flattens an object on a flat ground (a sphere cap
+    # filling the image): its shading then fits far worse than without the prior, and the
+    # solver drops it. Random bumps fit about as well with it and keep it, bit for bit.
+    light = Light(45.0, 200.0)
+    cap = ts.sphere_cap((128, 128), 2 * PX)
+    bumps = ts.random_bumps((128, 128), PX, seed=4)
+    results, default = {}, shading.LOWFREQ_REJECT_RATIO
+    for ratio in (default, np.inf):
+        monkeypatch.setattr(shading, "LOWFREQ_REJECT_RATIO", ratio)
+        for name, truth, px in (("cap", cap, 2 * PX), ("bumps", bumps, PX)):
+            img = render_lambertian(truth, px, light, 0.8)
+            results[name, ratio] = shape_from_shading(img, pixel_size_um=px, light=light,
+                                                      periodic=False).height
+    assert normalised_height_error(results["cap", default], cap) <= 0.10
+    assert normalised_height_error(results["cap", np.inf], cap) >= 0.5  # the prior kept
+    assert np.array_equal(results["bumps", default], results["bumps", np.inf])
+
+
 # ----------------------------------------------------------------------------- stability
 
 
