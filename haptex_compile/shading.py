@@ -87,6 +87,8 @@ LOWFREQ_CYCLES = 1.0
 # weave and Brownian surfaces 0.4-1.8, sphere caps on flat ground 8.8-1900. The prior
 # flattens those caps to errors of 0.94-0.98 (without it 0.01-0.06).
 LOWFREQ_CHECK_SIDE = 128
+# A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
+FAST_HALF_PX = 128
 LOWFREQ_REJECT_RATIO = 4.0
 # Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
 CENSORED = True
@@ -956,10 +958,15 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool):
         dom_img, dom_w = img, valid
     else:
         pad = max(8, int(0.08 * max(rows, cols)))
-        shape = (
-            sfft.next_fast_len(rows + pad, real=True),
-            sfft.next_fast_len(cols + pad, real=True),
-        )
+        # Sizes that halve to fast FFT sizes (factors 2, 3 and 5 only) down to about
+        # FAST_HALF_PX: 1024 px would get 1125, which halves to 562 = 2 x 281 (a prime) and
+        # that level's steps took 3 x as long. Smaller levels cost little either way, and
+        # a wider margin than needed loosens the solve (a 128 px sphere cap: 0.025 -> 0.109).
+        shape = []
+        for n in (rows + pad, cols + pad):
+            unit = 2 ** max(0, int(np.log2(n / FAST_HALF_PX)))
+            shape.append(unit * sfft.next_fast_len(-(-n // unit), real=True))
+        shape = tuple(shape)
         dom_img = _embed(img, shape)
         dom_w = _embed(valid, shape)
         dark, bright = (_embed(a, shape) for a in (dark, bright))
