@@ -542,6 +542,46 @@ def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monke
     assert np.array_equal(results["bumps", default], results["bumps", np.inf])
 
 
+def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
+    # The prior is applied by a DFT restricted to the waves it keeps; it must equal the full
+    # FFT with the kept symbol (odd and even sides, light with both components).
+    import scipy.fft as sfft
+
+    from haptex_compile.shading_variational import _Problem
+
+    rng = np.random.default_rng(3)
+    for rows, cols in ((144, 144), (145, 77), (96, 160)):
+        img = rng.random((rows, cols)).astype(np.float32)
+        prob = _Problem(img, np.ones_like(img), Light(40.0, 200.0).vector, 1e-4, 1,
+                        (0.64, 2 * np.pi / (0.9 * max(rows, cols))))
+        kept = np.count_nonzero(prob.lf)
+        assert 0 < kept < 0.02 * prob.lf.size  # a few waves
+        v = rng.standard_normal((rows, cols)).astype(np.float32)
+        want = sfft.irfft2(sfft.rfft2(v) * prob.lf, s=(rows, cols))
+        assert np.abs(prob.lowfreq(v) - want).max() <= 1e-5 * np.abs(want).max()
+
+
+def test_plain_image_domain_halves_to_fast_fft_sizes():
+    # The embedding domain holds the image and its margin, and halves to sizes with only the
+    # factors 2, 3 and 5 down to FAST_HALF_PX or so (1024 px: 1152, not 1125 -> 562 = 2 x 281).
+    def smooth(n):
+        for f in (2, 3, 5):
+            while n % f == 0:
+                n //= f
+        return n == 1
+
+    for side in (100, 256, 1000, 1024, 3000):
+        img = np.full((side, side // 2 + 7), 0.5)
+        dom, _, kwargs = shading._solve_domain(img, np.ones(img.shape, bool), _censored_pixels(img), False)
+        assert kwargs["data_shape"] == img.shape
+        for n, data in zip(dom.shape, img.shape):
+            assert n >= data + max(8, int(0.08 * side))
+            assert smooth(n)
+            while n >= 2 * shading.FAST_HALF_PX:  # its half is a level above FAST_HALF_PX
+                assert n % 2 == 0 and smooth(n // 2), (side, dom.shape)
+                n //= 2
+
+
 # ----------------------------------------------------------------------------- stability
 
 
