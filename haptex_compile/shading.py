@@ -87,9 +87,9 @@ LOWFREQ_CYCLES = 1.0
 # weave and Brownian surfaces 0.4-1.8, sphere caps on flat ground 8.8-1900. The prior
 # flattens those caps to errors of 0.94-0.98 (without it 0.01-0.06).
 LOWFREQ_CHECK_SIDE = 128
+LOWFREQ_REJECT_RATIO = 4.0
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
-LOWFREQ_REJECT_RATIO = 4.0
 # Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
 CENSORED = True
 # Settings of solve_variational for method "default" (its own defaults are the light search's,
