@@ -1126,12 +1126,10 @@ def shape_from_shading(
         kwargs.update(DEFAULT_SOLVER)
     kwargs.update(domain_kwargs)
     albedo_start = albedo
-    z, albedo = solve_variational(
-        dom_img, dom_w.astype(np.float32), light.vector, albedo, z0=z0, **kwargs
-    )
+    weight = dom_w.astype(np.float32)
+    z, albedo = solve_variational(dom_img, weight, light.vector, albedo, z0=z0, **kwargs)
     if aligned is not None and z0 is None:
-        z, albedo = _lowest_of_held_starts(dom_img, dom_w.astype(np.float32), light, albedo_start, kwargs,
-                                           z, albedo)
+        z, albedo = _lowest_of_held_starts(dom_img, weight, light, albedo_start, kwargs, z, albedo)
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
     if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
@@ -1189,8 +1187,7 @@ def _tile_aligned_tilt(tilt_deg: float, shape: tuple[int, int]) -> tuple[str, fl
         "anti-diagonal": float(np.degrees(np.arctan2(rows, -cols))),  # across the (1, 1) wave
     }
     for name, direction in directions.items():
-        off = abs((tilt_deg - direction + 90.0) % 180.0 - 90.0)
-        if off < ALIGNED_TILT_DEG:
+        if tilt_axis_difference_deg(tilt_deg, direction) < ALIGNED_TILT_DEG:
             return name, direction % 180.0
     return None
 
