@@ -51,6 +51,15 @@ GRAZING_DEG = 75.0
 # 0.823, 0.067; bumps at 270° 0.758, 0.450 (+1), 0.070 (+2), 0.023 (+3); Brownian at 0°
 # 0.213, 0.187 (+1), 0.092 (+2), 0.040 (+3); off these directions 0.02-0.07.
 ALIGNED_TILT_DEG = 3.0
+# A lattice relief (a weave photo's tile) lit nearly along one of its weave directions: the
+# profiles across that direction (a yarn's cross-section) have little slope along the light,
+# and the shading sees them at first order only in proportion to sin(slant) |sin(angle between
+# the tilt and the direction)| (see weave_visibility), which is warned of below this. Measured
+# with bench/bench_photo.py (1024 px photos of 20 µm pixels, light given; plain weaves and
+# smooth cells on a square and an oblique lattice, slants 15-60°, tilts 0-30° off a weave
+# direction): every height error above 0.11 had a visibility below 0.15 (plain weaves up to
+# 0.76: the slope across the light's direction is left wrong); above it at most 0.105.
+WEAVE_VISIBILITY_MIN = 0.15
 # Joint light search (see _refine_light): reduced image side, the assumed alignment of the best
 # lit normal with the light (cos 35°), and the slant bias that assumption can cause.
 SEARCH_SIDE_PX = 96
@@ -1190,6 +1199,34 @@ def _tile_aligned_tilt(tilt_deg: float, shape: tuple[int, int]) -> tuple[str, fl
         if tilt_axis_difference_deg(tilt_deg, direction) < ALIGNED_TILT_DEG:
             return name, direction % 180.0
     return None
+
+
+def weave_visibility(light: Light, basis_px) -> tuple[float, float]:
+    """How directly `light` sees the profiles across a lattice relief's weave directions.
+
+    The weave directions are the lattice's shortest vectors t1, t2 (the columns of
+    `basis_px`, a reduced basis as :func:`haptex_compile.lattice.find_lattice` returns) and
+    t1 ± t2 (a plain weave's yarns run along its reduced vectors or along their sum and
+    difference, depending on which repeat the lattice found). A wave across direction d has
+    no slope along d, and the first-order (linear) shading term sees its slope in proportion
+    to ``sin(slant) |sin(angle between the tilt and d)|``; lit along d it is seen only at
+    second order, where a ridge and a groove look alike (see ``WEAVE_VISIBILITY_MIN``).
+
+    Returns
+    -------
+    (float, float)
+        The smallest of those visibilities over the four directions (0 to 1), and the tilt in
+        degrees (in [0, 180)) of the direction that has it.
+    """
+    basis = np.asarray(basis_px, float)
+    t1, t2 = basis[:, 0], basis[:, 1]
+    sin_slant = float(np.sin(np.deg2rad(light.slant_deg)))
+    best = (np.inf, 0.0)
+    for d in (t1, t2, t1 + t2, t1 - t2):
+        direction = float(np.degrees(np.arctan2(d[1], d[0]))) % 180.0
+        off = tilt_axis_difference_deg(light.tilt_deg, direction)
+        best = min(best, (sin_slant * float(np.sin(np.deg2rad(off))), direction))
+    return best
 
 
 # --------------------------------------------------------------------------------------------

@@ -184,3 +184,29 @@ def test_a_drifting_weave_is_averaged_where_it_repeats(monkeypatch):
     whole = photo_surface(photo_img, PIXEL_UM, options, "drifting", {})
     assert "region_px" not in whole.report["lattice"] and whole.report["lattice"]["tile_explained_variance"] < 0.7
     assert centre_error(whole) > 2 * centre_error(result)
+
+
+def test_light_nearly_along_the_weave_is_warned_and_light_across_it_is_solved():
+    # A plain weave square to the camera, lit 3° off its yarns: the yarns' cross-sections
+    # have almost no slope along the light and come back wrong (measured: height error 0.53),
+    # which the report warns of; 25° off them (sin 45° sin 25° = 0.30, above
+    # WEAVE_VISIBILITY_MIN) the weave comes back (measured 0.023).
+    from haptex_compile.shading import WEAVE_VISIBILITY_MIN
+    from haptex_compile.synth_images import weave_image
+
+    truth = 40.0 * weave_image((512, 512), (16.0, 0.0), (0.0, 16.0), kind="plain")
+    y, x = np.mgrid[0:512:2, 0:512:2]
+    for tilt, warned in ((183.0, True), (205.0, False)):
+        image = render_lambertian(truth, PIXEL_UM, Light(45.0, tilt), 0.8)
+        options = SourceOptions(light=(45.0, tilt), roughness="none", relief_um=float(np.std(truth)))
+        result = photo_surface(image, PIXEL_UM, options, "weave", {})
+        shading = result.report["shading"]
+        assert (shading["weave_visibility"] < WEAVE_VISIBILITY_MIN) == warned
+        assert any("nearly along the weave direction" in w for w in shading["warnings"]) == warned
+        if warned:
+            # (the lattice found is within a few thousandths of a degree of the truth)
+            assert shading["weave_visibility"] == pytest.approx(np.sin(np.deg2rad(45.0)) * np.sin(np.deg2rad(3.0)), rel=1e-3)
+            assert tilt_axis_difference_deg(shading["weave_direction_tilt_deg"], 0.0) < 0.5
+        else:
+            height = heights_at_image_px(result, x.ravel(), y.ravel())
+            assert normalised_height_error(height, truth[y, x].ravel()) < 0.05

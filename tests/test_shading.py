@@ -1044,3 +1044,22 @@ def test_real_fabric_photo_is_stable(shared_fabrics):
     assert np.all(np.isfinite(res.height))
     assert _slope_rms(res.height) < 5.0
     assert 0.0 <= res.light.slant_deg <= 90.0
+
+
+def test_weave_visibility_is_the_linear_shading_of_waves_across_each_weave_direction():
+    # A wave across direction d is seen at first order in proportion to the light's component
+    # along its wave vector: sin(slant) |sin(tilt - direction of d)|, the smallest over t1,
+    # t2, t1 + t2 and t1 - t2 (the tilt's 180° ambiguity does not change it).
+    from haptex_compile.shading import weave_visibility
+
+    square = np.array([[16.0, 0.0], [0.0, 16.0]])
+    assert weave_visibility(Light(30.0, 180.0), square) == pytest.approx((0.0, 0.0), abs=1e-12)
+    v, d = weave_visibility(Light(30.0, 10.0), square)
+    assert d == pytest.approx(0.0) and v == pytest.approx(0.5 * np.sin(np.deg2rad(10.0)))
+    v, d = weave_visibility(Light(45.0, 22.5 + 180.0), square)  # halfway between t1 and t1 + t2
+    assert v == pytest.approx(np.sin(np.deg2rad(45.0)) * np.sin(np.deg2rad(22.5)))
+    v, d = weave_visibility(Light(60.0, 131.0), square)  # 4° from t2 - t1, the anti-diagonal
+    assert d == pytest.approx(135.0) and v == pytest.approx(np.sin(np.deg2rad(60.0)) * np.sin(np.deg2rad(4.0)))
+    oblique = np.array([[7.05, -11.25], [9.4, 6.3]])  # reduced: t1 + t2 is (-4.2, 15.7)
+    v, d = weave_visibility(Light(30.0, np.degrees(np.arctan2(15.7, -4.2)) + 180.0), oblique)
+    assert v == pytest.approx(0.0, abs=1e-12) and d == pytest.approx(np.degrees(np.arctan2(15.7, -4.2)))
