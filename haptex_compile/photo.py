@@ -262,11 +262,11 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     if visibility < WEAVE_VISIBILITY_MIN and sfs.light.slant_deg >= MIN_SLANT_DEG:
         light_notes.append(
             f"light (slant {sfs.light.slant_deg:.1f}°, tilt {sfs.light.tilt_deg:.1f}°) nearly along the weave direction"
-            f" at tilt {weave_tilt:.1f}°: sin(slant) x sin(angle between them) = {visibility:.2f} < {WEAVE_VISIBILITY_MIN:g},"
-            " so the profiles across that direction (the yarns' cross-sections) barely shade and are left wrong (bench:"
-            " plain weaves lit so came back with height errors up to 0.76, against at most 0.105 above it); light the"
-            f" fabric so that this product is at least {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°,"
-            " 15-30° off the yarns)")
+            f" at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between them) = {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g},"
+            " so the profiles across that direction (the yarns' cross-sections) barely shade and may come back wrong"
+            " (bench: of 72 such lights on plain weaves and smooth cells, 31 gave height errors above 0.1, up to 0.76;"
+            " of 24 lights above it, none above 0.105); light the fabric so that this product is at least"
+            f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)")
         LOG.warning("%s: %s", spec, light_notes[-1])
     # The asset's report keeps every warning, the estimated light's included.
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
