@@ -193,9 +193,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     """Surface from a grey image in [0, 1] (no file I/O)."""
     from haptex_compile.fractal import brownian_surface, roughness_from_residual
     from haptex_compile.lattice import Lattice, find_lattice
-    from haptex_compile.shading import (
-        MIN_SLANT_DEG, WEAVE_VISIBILITY_MIN, Light, estimated_light_note, shape_from_shading, weave_visibility,
-    )
+    from haptex_compile.shading import Light, estimated_light_note, shape_from_shading, weave_visibility
     from haptex_compile.surface import periodic_surface_from_tile
     from haptex_compile.tiles import average_tile, flatten_illumination, paint_tile, periodic_window
 
@@ -255,19 +253,11 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         if light is not None:
             light_notes.append(f"{estimated_light_note(light)} (on {light_on})")
             LOG.warning("%s: %s", spec, light_notes[-1])
-    sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None)
+    sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None,
+                             weave_basis_px=basis)
     for w in sfs.warnings:
         LOG.warning("%s: %s", spec, w)
-    visibility, weave_tilt = weave_visibility(sfs.light, lattice.basis_px)
-    if visibility < WEAVE_VISIBILITY_MIN and sfs.light.slant_deg >= MIN_SLANT_DEG:
-        light_notes.append(
-            f"light (slant {sfs.light.slant_deg:.1f}°, tilt {sfs.light.tilt_deg:.1f}°) nearly along the weave direction"
-            f" at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between them) = {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g},"
-            " so the profiles across that direction (the yarns' cross-sections) barely shade and may come back wrong"
-            " (bench: of 72 such lights on plain weaves and smooth cells, 31 gave height errors above 0.1, up to 0.76;"
-            " of 24 lights above it, none above 0.105); light the fabric so that this product is at least"
-            f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)")
-        LOG.warning("%s: %s", spec, light_notes[-1])
+    visibility, weave_tilt = weave_visibility(sfs.light, basis)
     # The asset's report keeps every warning, the estimated light's included.
     report["shading"] = {"method": sfs.method, "light_slant_deg": sfs.light.slant_deg, "light_tilt_deg": sfs.light.tilt_deg,
                          "light_given": options.light is not None, "warnings": light_notes + list(sfs.warnings),

@@ -57,11 +57,10 @@ ALIGNED_TILT_DEG = 3.0
 # the tilt and the direction)| (see weave_visibility), which is warned of below this. Measured
 # with bench/bench_photo.py (1024 px photos of 20 µm pixels, light given; plain weaves and
 # smooth cells on a square and an oblique lattice, slants 15-60°, tilts 0-30° off a weave
-# direction): 72 lights below 0.15, 31 of them with height errors above 0.1 (up to 0.76,
-# plain weaves lit 3° off their yarns at 30°); 24 above it, errors at most 0.105. The
-# warnings below it are often needless (smooth cells 5° or more off), but nothing above it
-# failed; at slant 15° every tilt is below it on a square lattice, and the plain weave
-# failed at every tilt measured (0.12-0.32).
+# direction): 72 lights below 0.15, 31 of them with height errors above 0.1 from the pyramid
+# alone (up to 0.76, plain weaves lit 3° off their yarns at 30°); 24 above it, errors at most
+# 0.105. Below it the solve adds starts at full resolution (_lowest_of_fine_starts), which
+# leaves 7 above 0.1 (up to 0.74); at slant 15° every tilt is below it on a square lattice.
 WEAVE_VISIBILITY_MIN = 0.15
 # Joint light search (see _refine_light): reduced image side, the assumed alignment of the best
 # lit normal with the light (cos 35°), and the slant bias that assumption can cause.
@@ -1017,6 +1016,7 @@ def shape_from_shading(
     method: str = "default",
     periodic: bool = False,
     mask=None,
+    weave_basis_px=None,
 ) -> SfsResult:
     """Relative heights from one Lambertian image.
 
@@ -1051,6 +1051,12 @@ def shape_from_shading(
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
+    weave_basis_px : array_like, optional
+        The lattice of a periodic tile's relief (columns t1, t2 in pixels, a reduced basis),
+        when known (a weave photo's tile). Light nearly along one of its weave directions
+        (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and solved from
+        more starts, as is light along the tile's axes and diagonals (see
+        :func:`_lowest_of_fine_starts`).
 
     Returns
     -------
@@ -1113,11 +1119,27 @@ def shape_from_shading(
         warnings.append(
             f"light tilt {light.tilt_deg:.1f}° within {ALIGNED_TILT_DEG:g}° of the periodic"
             f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
-            " no slope along it and the shading barely fixes them (solved from 3 starts, the"
-            " lowest energy kept); the heights may be far off (bench: normalised errors up to"
-            f" 0.5); light the fabric at least {ALIGNED_TILT_DEG:g}° away from its weave's axes"
-            " and diagonals"
+            " no slope along it and the shading barely fixes them (solved from 3 starts of the"
+            " pyramid and 3 at full resolution, the lowest energy kept); the heights may be far"
+            " off (bench: normalised errors up to 0.47, a sphere cap along the diagonal at 60°);"
+            f" light the fabric at least {ALIGNED_TILT_DEG:g}° away from its weave's axes and"
+            " diagonals"
         )
+    along_weave = None
+    if periodic and weave_basis_px is not None and light.slant_deg >= MIN_SLANT_DEG:
+        visibility, weave_tilt = weave_visibility(light, weave_basis_px)
+        if visibility < WEAVE_VISIBILITY_MIN:
+            along_weave = (visibility, weave_tilt)
+            warnings.append(
+                f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
+                f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between them) ="
+                f" {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g}, so the profiles across that direction (the yarns'"
+                " cross-sections) barely shade; solved from 3 more starts at full resolution, the lowest"
+                " energy kept, and they may still come back wrong (bench: of 72 such lights on plain weaves and"
+                " smooth cells, 7 gave height errors above 0.1, up to 0.74, against 31 from the pyramid alone);"
+                " light the fabric so that this product is at least"
+                f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)"
+            )
     if light.slant_deg >= GRAZING_DEG:
         warnings.append(
             f"grazing light (slant {light.slant_deg:.1f}° >= {GRAZING_DEG:g}°): shadowed pixels"
@@ -1142,6 +1164,8 @@ def shape_from_shading(
     z, albedo = solve_variational(dom_img, weight, light.vector, albedo, z0=z0, **kwargs)
     if aligned is not None and z0 is None:
         z, albedo = _lowest_of_held_starts(dom_img, weight, light, albedo_start, kwargs, z, albedo)
+    if (aligned is not None or along_weave is not None) and z0 is None:
+        z, albedo = _lowest_of_fine_starts(dom_img, weight, light, albedo_start, domain_kwargs, z, albedo)
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
     if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
@@ -1181,6 +1205,83 @@ def _lowest_of_held_starts(img, weight, light: Light, albedo0: float, kwargs: di
         if e < best[0]:
             best = (e, zh, ah)
     return best[1], best[2]
+
+
+# Full-resolution starts for light along a tile's axis or diagonal or nearly along a weave
+# direction (see _lowest_of_fine_starts): Gauss-Newton steps and CG iterations of each solve,
+# the relative gain at which it stops, and the thin-plate weights of the continuation start.
+FINE_START_GN = 30
+FINE_START_CG = 20
+FINE_START_RTOL = 1e-5
+FINE_START_LAMS = (1e-3, 1e-4)
+
+
+def _lowest_of_fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict, z, albedo):
+    """Of the solve `z`, `albedo` and three solves at full resolution only, the one of lowest
+    energy (the finest level's, as in :func:`_lowest_of_held_starts`).
+
+    A coarse level of a lattice relief lit nearly along a weave direction under-resolves the
+    yarns, and its averaged image sets their cross-sections (the waves the light barely sees)
+    wrong; the finer levels keep that. From a flat start at full resolution the shading's
+    coupling with the well-seen waves sets them (plain weave, 16 px cells, lit 3° off its
+    yarns at 45°: 0.649 from the pyramid, 0.024 from the flat start, which is the truth's
+    energy). The starts: flat (``FINE_START_GN`` steps); that result with the waves that have
+    no slope at all along the light (light along the domain's axes or diagonals) negated,
+    since the shading sees them only at second order, where a ridge and a groove look alike;
+    and flat with the thin-plate weight stepped down through ``FINE_START_LAMS`` (smooth
+    shapes first). Measured (plain weaves and smooth cells in 208 px periodic windows of a
+    square and an oblique lattice, slants 30-60°, 0-12° off a weave direction, light given):
+    summed height errors 8.6 -> 3.1 and 9.6 -> 5.9; at 1° off, where no start finds the
+    truth's basin, the energy can pick worse (0.475 -> 0.990 once). On bench/bench_photo.py's
+    photos (72 lights below ``WEAVE_VISIBILITY_MIN``): errors above 0.1 in 31 cases -> 7.
+    Bench tiles lit along their axes and diagonals (slants 30-60°): summed 3.58 -> 1.74,
+    random bumps along the axes at 60° 0.474 -> 0.123 and 0.524 -> 0.075; none worse by more
+    than 0.03. Cost: up to 2 x ``FINE_START_GN`` steps at full resolution (3 x when the light
+    runs along the domain's axes or diagonals); a plain weave lit 3° off its yarns, 1024 px:
+    11.2 s instead of 0.6 s.
+    """
+    from haptex_compile.shading_variational import energy, solve_variational
+
+    censored = {k: domain_kwargs[k] for k in ("dark", "bright") if k in domain_kwargs}
+
+    def solve(a0, z_start=None, lam=1e-4, steps=FINE_START_GN):
+        return solve_variational(img, weight, light.vector, a0, z0=z_start, lam=lam, max_levels=1,
+                                 fine_gn=steps, fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **domain_kwargs)
+
+    def e_of(zz, aa):
+        return energy(img, weight, light.vector, aa, zz, **censored)
+
+    best = (e_of(z, albedo), z, albedo)
+    zf, af = solve(albedo0)
+    candidates = [(zf, af)]
+    invisible = _unseen_waves(zf, light)
+    if invisible is not None:
+        candidates.append(solve(af, zf - 2.0 * invisible))
+    zc, ac = None, albedo0
+    for lam in FINE_START_LAMS:
+        zc, ac = solve(ac, zc, lam, FINE_START_GN // len(FINE_START_LAMS))
+    candidates.append((zc, ac))
+    for zz, aa in candidates:
+        e = e_of(zz, aa)
+        if e < best[0]:
+            best = (e, zz, aa)
+    return best[1], best[2]
+
+
+def _unseen_waves(z: np.ndarray, light: Light) -> np.ndarray | None:
+    """The part of periodic `z` made of waves with no slope along the light's tilt (wave
+    vector perpendicular to it: the light runs along the domain's axes or diagonals), or None
+    when there are none."""
+    rows, cols = z.shape
+    ky = np.fft.fftfreq(rows)[:, None]
+    kx = np.fft.rfftfreq(cols)[None, :]
+    t = np.deg2rad(light.tilt_deg)
+    unseen = np.abs(kx * np.cos(t) + ky * np.sin(t)) <= 1e-6 * np.hypot(kx, ky)
+    unseen[0, 0] = False
+    if not unseen.any():
+        return None
+    spec = sfft.rfft2(z.astype(np.float64))
+    return sfft.irfft2(np.where(unseen, spec, 0.0), s=z.shape).astype(z.dtype)
 
 
 def _tile_aligned_tilt(tilt_deg: float, shape: tuple[int, int]) -> tuple[str, float] | None:

@@ -186,11 +186,13 @@ def test_a_drifting_weave_is_averaged_where_it_repeats(monkeypatch):
     assert centre_error(whole) > 2 * centre_error(result)
 
 
-def test_light_nearly_along_the_weave_is_warned_and_light_across_it_is_solved():
+def test_light_nearly_along_the_weave_is_warned_and_solved_from_full_resolution_starts():
     # A plain weave square to the camera, lit 3° off its yarns: the yarns' cross-sections
-    # have almost no slope along the light and come back wrong (measured: height error 0.53),
-    # which the report warns of; 25° off them (sin 45° sin 25° = 0.30, above
-    # WEAVE_VISIBILITY_MIN) the weave comes back (measured 0.023).
+    # have almost no slope along the light. The pyramid's coarse levels under-resolve the yarns
+    # and set them wrong (measured: height error 0.53 from the pyramid alone); the report
+    # warns, and the starts at full resolution recover them (measured 0.048). 25° off the
+    # yarns (sin 45° sin 25° = 0.30, above WEAVE_VISIBILITY_MIN) nothing is said and the
+    # pyramid alone recovers the weave (measured 0.023).
     from haptex_compile.shading import WEAVE_VISIBILITY_MIN
     from haptex_compile.synth_images import weave_image
 
@@ -207,6 +209,5 @@ def test_light_nearly_along_the_weave_is_warned_and_light_across_it_is_solved():
             # (the lattice found is within a few thousandths of a degree of the truth)
             assert shading["weave_visibility"] == pytest.approx(np.sin(np.deg2rad(45.0)) * np.sin(np.deg2rad(3.0)), rel=1e-3)
             assert tilt_axis_difference_deg(shading["weave_direction_tilt_deg"], 0.0) < 0.5
-        else:
-            height = heights_at_image_px(result, x.ravel(), y.ravel())
-            assert normalised_height_error(height, truth[y, x].ravel()) < 0.05
+        height = heights_at_image_px(result, x.ravel(), y.ravel())
+        assert normalised_height_error(height, truth[y, x].ravel()) < (0.1 if warned else 0.05)

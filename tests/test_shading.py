@@ -612,7 +612,7 @@ def test_grazing_light_is_stable_and_warned(bumps128):
     assert normalised_height_error(res.height, bumps128) < 1.0
 
 
-def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_three_starts(surfaces256):
+def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_starts(surfaces256):
     # A wave of one cycle per tile along x has no slope along a light at tilt 90° or 270°:
     # the shading sees it only at second order. The directions across the tile-sized waves
     # (1, 0), (0, 1), (1, 1), (1, -1) are the axes and, for a w x h tile, the diagonals at
@@ -647,14 +647,16 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_three_sta
          for k, (z, a) in (("one start", (one, a1)), ("kept", (res.height / PX, res.albedo)))}
     assert e["kept"] < 0.8 * e["one start"]
 
+    # Random bumps along the y axis: the coarse levels set the waves across the light wrong
+    # from every pyramid start (measured 0.758 from one, 0.311 from the held starts); the
+    # full-resolution starts (_lowest_of_fine_starts) meet the 30 % (measured 0.134).
     h = surfaces256["bumps"]
     for tilt, warned in ((270.0, True), (273.0, False)):
         light = Light(60.0, tilt)
         img = render_lambertian(h, PX, light, 0.8, periodic=True)
         res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
         assert any("y axis" in w for w in res.warnings) == warned
-        if not warned:
-            assert normalised_height_error(res.height, h) <= 0.30
+        assert normalised_height_error(res.height, h) <= 0.30
         plain = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False)
         assert not any("axis" in w for w in plain.warnings)  # no periodic tile, no closed lines
 
