@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from haptex_compile import tiles  # noqa: E402
 from haptex_compile.photo import heights_at_image_px, photo_surface  # noqa: E402
 from haptex_compile.shading import (  # noqa: E402
-    Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
+    WEAVE_VISIBILITY_MIN, Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
 )
 from haptex_compile.sources import SourceOptions  # noqa: E402
 from haptex_compile.synth_images import lattice_relief, stretch_from_centre, weave_image  # noqa: E402
@@ -141,21 +141,19 @@ OFFSETS_DEG = (0.0, 3.0, 8.0, 12.0, 20.0, 30.0)
 def _weave_direction_rows(quick: bool) -> str:
     """Light given at angles off a weave direction: the height error, and whether the report
     warned (``shading.weave_visibility`` below ``WEAVE_VISIBILITY_MIN``)."""
-    from haptex_compile.shading import WEAVE_VISIBILITY_MIN
-
     square, oblique = ((16.0, 0.0), (0.0, 16.0)), ((18.3, 3.1), (-4.2, 15.7))
-    along = {"t1": float(np.degrees(np.arctan2(3.1, 18.3))), "t2": float(np.degrees(np.arctan2(15.7, -4.2)))}
     cases = [(square, "x axis", 0.0, slant) for slant in ((45.0,) if quick else (15.0, 30.0, 45.0, 60.0))]
     if not quick:
-        cases += [(oblique, "t1", along["t1"], 45.0), (oblique, "t2", along["t2"], 30.0)]
+        cases += [(oblique, name, float(np.degrees(np.arctan2(t[1], t[0]))), slant)
+                  for name, t, slant in (("t1", oblique[0], 45.0), ("t2", oblique[1], 30.0))]
     rows = ["Light near a weave direction (given): plain weaves and smooth cells lit at these angles off one of the"
             " lattice's directions; normalised height error over every other pixel, w = warned (`shading.weave_visibility`,"
             f" sin(slant) x sin(angle to t1, t2, t1 + t2 or t1 - t2) below {WEAVE_VISIBILITY_MIN:g}: those are also solved"
-            " from 3 more starts at full resolution, `shading._lowest_of_fine_starts`). The profiles across a direction"
+            " from 2-3 more starts at full resolution, `shading._fine_starts`). The profiles across a direction"
             " the light runs along have no slope along it, and the shading sees them only at second order:", "",
             "| relief | lattice t1; t2 (px) | along | slant (°) | " + " | ".join(f"{o:g}°" for o in OFFSETS_DEG) + " |",
             "| --- | --- | --- | --- | " + " | ".join("---" for _ in OFFSETS_DEG) + " |"]
-    worst = {True: [], False: []}
+    errors = {True: [], False: []}  # by warned
     for (t1, t2), name, tilt0, slant in cases:
         for relief, truth in _reliefs(t1, t2).items():
             if quick and relief != "plain weave":
@@ -166,11 +164,11 @@ def _weave_direction_rows(quick: bool) -> str:
                 image = render_lambertian(truth, PIXEL_UM, Light(*light), 0.8)
                 err, _, shading = _solve(image, truth, light, whole=False)
                 warned = shading["weave_visibility"] < WEAVE_VISIBILITY_MIN
-                worst[warned].append(err)
+                errors[warned].append(err)
                 cells.append(f"{err:.3f}{' w' if warned else ''}")
             rows.append(f"| {relief} | {t1}; {t2} | {name} ({tilt0:.1f}°) | {slant:g} | " + " | ".join(cells) + " |")
-    rows.append(f"\nWarned: {len(worst[True])} cases, errors {min(worst[True]):.3f}-{max(worst[True]):.3f}; not warned:"
-                f" {len(worst[False])}, errors {min(worst[False]):.3f}-{max(worst[False]):.3f}.\n")
+    rows.append(f"\nWarned: {len(errors[True])} cases, errors {min(errors[True]):.3f}-{max(errors[True]):.3f}; not warned:"
+                f" {len(errors[False])}, errors {min(errors[False]):.3f}-{max(errors[False]):.3f}.\n")
     return "\n".join(rows) + "\n"
 
 

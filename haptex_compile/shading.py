@@ -60,7 +60,7 @@ ALIGNED_TILT_DEG = 3.0
 # direction 0, 3, 8, 12, 20, 30°): 54 lights below 0.15, 25 of them with height errors above
 # 0.1 from the pyramid alone (up to 0.76, plain weaves lit 3° off their yarns at 30°); 18 above
 # it, errors at most 0.105. Below it the solve adds starts at full resolution
-# (_lowest_of_fine_starts), which leaves 7 above 0.1 (up to 0.74); at slant 15° every tilt is
+# (_fine_starts), which leaves 7 above 0.1 (up to 0.74); at slant 15° every tilt is
 # below it on a square lattice.
 WEAVE_VISIBILITY_MIN = 0.15
 # Joint light search (see _refine_light): reduced image side, the assumed alignment of the best
@@ -1057,7 +1057,7 @@ def shape_from_shading(
         when known (a weave photo's tile). Light nearly along one of its weave directions
         (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and solved from
         more starts, as is light along the tile's axes and diagonals (see
-        :func:`_lowest_of_fine_starts`).
+        :func:`_fine_starts`).
 
     Returns
     -------
@@ -1163,10 +1163,12 @@ def shape_from_shading(
     albedo_start = albedo
     weight = dom_w.astype(np.float32)
     z, albedo = solve_variational(dom_img, weight, light.vector, albedo, z0=z0, **kwargs)
-    if aligned is not None and z0 is None:
-        z, albedo = _lowest_of_held_starts(dom_img, weight, light, albedo_start, kwargs, z, albedo)
     if (aligned is not None or along_weave is not None) and z0 is None:
-        z, albedo = _lowest_of_fine_starts(dom_img, weight, light, albedo_start, domain_kwargs, z, albedo)
+        starts = [(z, albedo)]
+        if aligned is not None:
+            starts += _held_starts(dom_img, weight, light, albedo_start, kwargs)
+        starts += _fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
+        z, albedo = _lowest_energy(dom_img, weight, light, domain_kwargs, starts)
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
     if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
@@ -1181,14 +1183,22 @@ def shape_from_shading(
 
 # Light along a periodic tile's axis or diagonal: the solve is repeated with the waves that
 # have no slope along the light held on the coarse levels (from these pyramid levels on), and
-# the result of lowest energy is kept (see _lowest_of_held_starts).
+# the result of lowest energy is kept (see _held_starts).
 HELD_START_LEVELS = (2, 1)
 
 
-def _lowest_of_held_starts(img, weight, light: Light, albedo0: float, kwargs: dict, z, albedo):
-    """Of the solve `z`, `albedo` and the solves holding the waves with no slope along the
-    light from each of ``HELD_START_LEVELS`` on, the one of lowest energy (the same energy
-    for all: the finest level's).
+def _lowest_energy(img, weight, light: Light, domain_kwargs: dict, starts: list):
+    """Of the solves `starts`, (z, albedo) pairs on the domain, the one of lowest energy (the
+    same energy for all: the finest level's; the first of equals)."""
+    from haptex_compile.shading_variational import energy
+
+    censored = {k: domain_kwargs[k] for k in ("dark", "bright") if k in domain_kwargs}
+    return min(starts, key=lambda s: energy(img, weight, light.vector, s[1], s[0], **censored))
+
+
+def _held_starts(img, weight, light: Light, albedo0: float, kwargs: dict) -> list:
+    """The solves (z, albedo) holding the waves with no slope along the light from each of
+    ``HELD_START_LEVELS`` on (`kwargs`: the main solve's settings).
 
     A coarse level's averaged image sets those waves wrong, and the finest level cannot undo
     them. Measured at 256 px, light given along the axes and diagonals, slants 30-60°: plain
@@ -1196,20 +1206,14 @@ def _lowest_of_held_starts(img, weight, light: Light, albedo0: float, kwargs: di
     (30°, along x); the sphere cap along the diagonal at 60° stays at 0.470 (no start finds
     its minimum), Brownian surfaces within 0.02 except one at 0.053 -> 0.076.
     """
-    from haptex_compile.shading_variational import energy, solve_variational
+    from haptex_compile.shading_variational import solve_variational
 
-    censored = {k: kwargs[k] for k in ("dark", "bright") if k in kwargs}
-    best = (energy(img, weight, light.vector, albedo, z, **censored), z, albedo)
-    for level in HELD_START_LEVELS:
-        zh, ah = solve_variational(img, weight, light.vector, albedo0, hold_from_level=level, **kwargs)
-        e = energy(img, weight, light.vector, ah, zh, **censored)
-        if e < best[0]:
-            best = (e, zh, ah)
-    return best[1], best[2]
+    return [solve_variational(img, weight, light.vector, albedo0, hold_from_level=level, **kwargs)
+            for level in HELD_START_LEVELS]
 
 
 # Full-resolution starts for light along a tile's axis or diagonal or nearly along a weave
-# direction (see _lowest_of_fine_starts): Gauss-Newton steps and CG iterations of each solve,
+# direction (see _fine_starts): Gauss-Newton steps and CG iterations of each solve,
 # the relative gain at which it stops, and the thin-plate weights of the continuation start.
 FINE_START_GN = 30
 FINE_START_CG = 20
@@ -1217,9 +1221,9 @@ FINE_START_RTOL = 1e-5
 FINE_START_LAMS = (1e-3, 1e-4)
 
 
-def _lowest_of_fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict, z, albedo):
-    """Of the solve `z`, `albedo` and three solves at full resolution only, the one of lowest
-    energy (the finest level's, as in :func:`_lowest_of_held_starts`).
+def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict) -> list:
+    """Two or three solves (z, albedo) at full resolution only, from flat starts; the caller
+    keeps the one of lowest energy (:func:`_lowest_energy`).
 
     A coarse level of a lattice relief lit nearly along a weave direction under-resolves the
     yarns, and its averaged image sets their cross-sections (the waves the light barely sees)
@@ -1242,32 +1246,22 @@ def _lowest_of_fine_starts(img, weight, light: Light, albedo0: float, domain_kwa
     11.2 s instead of 0.6 s; bench/bench_photo.py's plain weave lit 7° off t1 + t2 (a 975 x
     787 px window): 11.2 s instead of 1.4 s, height error 0.035 -> 0.023.
     """
-    from haptex_compile.shading_variational import energy, solve_variational
-
-    censored = {k: domain_kwargs[k] for k in ("dark", "bright") if k in domain_kwargs}
+    from haptex_compile.shading_variational import solve_variational
 
     def solve(a0, z_start=None, steps=FINE_START_GN, **thin_plate):
         return solve_variational(img, weight, light.vector, a0, z0=z_start, max_levels=1, fine_gn=steps,
                                  fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **thin_plate, **domain_kwargs)
 
-    def e_of(zz, aa):
-        return energy(img, weight, light.vector, aa, zz, **censored)
-
-    best = (e_of(z, albedo), z, albedo)
     zf, af = solve(albedo0)
-    candidates = [(zf, af)]
+    starts = [(zf, af)]
     invisible = _unseen_waves(zf, light)
     if invisible is not None:
-        candidates.append(solve(af, zf - 2.0 * invisible))
+        starts.append(solve(af, zf - 2.0 * invisible))
     zc, ac = None, albedo0
     for lam in FINE_START_LAMS:
         zc, ac = solve(ac, zc, FINE_START_GN // len(FINE_START_LAMS), lam=lam)
-    candidates.append((zc, ac))
-    for zz, aa in candidates:
-        e = e_of(zz, aa)
-        if e < best[0]:
-            best = (e, zz, aa)
-    return best[1], best[2]
+    starts.append((zc, ac))
+    return starts
 
 
 def _unseen_waves(z: np.ndarray, light: Light) -> np.ndarray | None:
