@@ -149,11 +149,13 @@ def _weave_direction_rows(quick: bool) -> str:
     rows = ["Light near a weave direction (given): plain weaves and smooth cells lit at these angles off one of the"
             " lattice's directions; normalised height error over every other pixel, w = warned (`shading.weave_visibility`,"
             f" sin(slant) x sin(angle to t1, t2, t1 + t2 or t1 - t2) below {WEAVE_VISIBILITY_MIN:g}: those are also solved"
-            " from 2-3 more starts at full resolution, `shading._fine_starts`). The profiles across a direction"
+            " from 2-3 more starts at full resolution on a small periodic window of the lattice, polished on the"
+            " surface's window, `shading._fine_starts_on_cell`). The profiles across a direction"
             " the light runs along have no slope along it, and the shading sees them only at second order:", "",
             "| relief | lattice t1; t2 (px) | along | slant (°) | " + " | ".join(f"{o:g}°" for o in OFFSETS_DEG) + " |",
             "| --- | --- | --- | --- | " + " | ".join("---" for _ in OFFSETS_DEG) + " |"]
-    errors = {True: [], False: []}  # by warned
+    errors: dict[bool, list[float]] = {True: [], False: []}  # by warned
+    seconds: dict[bool, list[float]] = {True: [], False: []}
     for (t1, t2), name, tilt0, slant in cases:
         for relief, truth in _reliefs(t1, t2).items():
             if quick and relief != "plain weave":
@@ -162,13 +164,16 @@ def _weave_direction_rows(quick: bool) -> str:
             for off in OFFSETS_DEG:
                 light = (slant, tilt0 + off)
                 image = render_lambertian(truth, PIXEL_UM, Light(*light), 0.8)
-                err, _, shading = _solve(image, truth, light, whole=False)
+                err, sec, shading = _solve(image, truth, light, whole=False)
                 warned = shading["weave_visibility"] < WEAVE_VISIBILITY_MIN
                 errors[warned].append(err)
+                seconds[warned].append(sec)
                 cells.append(f"{err:.3f}{' w' if warned else ''}")
             rows.append(f"| {relief} | {t1}; {t2} | {name} ({tilt0:.1f}°) | {slant:g} | " + " | ".join(cells) + " |")
     rows.append(f"\nWarned: {len(errors[True])} cases, errors {min(errors[True]):.3f}-{max(errors[True]):.3f}; not warned:"
-                f" {len(errors[False])}, errors {min(errors[False]):.3f}-{max(errors[False]):.3f}.\n")
+                f" {len(errors[False])}, errors {min(errors[False]):.3f}-{max(errors[False]):.3f}. Median time of the whole"
+                f" pipeline: warned {statistics.median(seconds[True]):.2f} s, not warned {statistics.median(seconds[False]):.2f} s"
+                f" (slowest {max(seconds[True]):.2f} s and {max(seconds[False]):.2f} s).\n")
     return "\n".join(rows) + "\n"
 
 
