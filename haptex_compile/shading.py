@@ -1056,8 +1056,9 @@ def shape_from_shading(
         The lattice of a periodic tile's relief (columns t1, t2 in pixels, a reduced basis),
         when known (a weave photo's tile). Light nearly along one of its weave directions
         (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and solved from
-        more starts, as is light along the tile's axes and diagonals (see
-        :func:`_fine_starts`).
+        more starts (see :func:`_fine_starts_on_cell`). Without it, light along the tile's axes
+        and diagonals is; with it, only when the light is also near a weave direction (a
+        weave's window is cut to repeat the lattice, and its own axes mean nothing).
 
     Returns
     -------
@@ -1115,17 +1116,6 @@ def shape_from_shading(
             " surfaces)"
         )
         used_method = f"{method}+brightness-start"
-    aligned = _tile_aligned_tilt(light.tilt_deg, img.shape) if periodic else None
-    if aligned is not None and light.slant_deg >= MIN_SLANT_DEG:
-        warnings.append(
-            f"light tilt {light.tilt_deg:.1f}° within {ALIGNED_TILT_DEG:g}° of the periodic"
-            f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
-            " no slope along it and the shading barely fixes them (solved from 3 starts of the"
-            " pyramid and 3 at full resolution, the lowest energy kept); the heights may be far"
-            " off (bench: normalised errors up to 0.47, a sphere cap along the diagonal at 60°);"
-            f" light the fabric at least {ALIGNED_TILT_DEG:g}° away from its weave's axes and"
-            " diagonals"
-        )
     along_weave = None
     if periodic and weave_basis_px is not None and light.slant_deg >= MIN_SLANT_DEG:
         visibility, weave_tilt = weave_visibility(light, weave_basis_px)
@@ -1142,6 +1132,23 @@ def shape_from_shading(
                 " light the fabric so that this product is at least"
                 f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)"
             )
+    aligned = _tile_aligned_tilt(light.tilt_deg, img.shape) if periodic else None
+    if weave_basis_px is not None:
+        # A weave's window: its axes and diagonals matter only where they run along a weave
+        # direction (warned above; the held starts still run); elsewhere the waves across them
+        # are not the weave's (bench/bench_photo.py's plain weave lit 30° off t1, along the
+        # 975 x 787 px window's diagonal: the same height error, 7.0 s -> 1.6 s).
+        aligned = aligned if along_weave is not None else None
+    elif aligned is not None and light.slant_deg >= MIN_SLANT_DEG:
+        warnings.append(
+            f"light tilt {light.tilt_deg:.1f}° within {ALIGNED_TILT_DEG:g}° of the periodic"
+            f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
+            " no slope along it and the shading barely fixes them (solved from 3 starts of the"
+            " pyramid and 3 at full resolution, the lowest energy kept); the heights may be far"
+            " off (bench: normalised errors up to 0.47, a sphere cap along the diagonal at 60°);"
+            f" light the fabric at least {ALIGNED_TILT_DEG:g}° away from its weave's axes and"
+            " diagonals"
+        )
     if light.slant_deg >= GRAZING_DEG:
         warnings.append(
             f"grazing light (slant {light.slant_deg:.1f}° >= {GRAZING_DEG:g}°): shadowed pixels"
