@@ -682,6 +682,22 @@ def test_weave_starts_run_on_a_small_window_of_the_lattice_and_keep_its_shadows(
     assert any("nearly along the weave direction" in w for w in res.warnings)
     assert normalised_height_error(res.height, truth) < 0.1
 
+    # A window solution that does not repeat cell by cell (here: noise) is not transferred;
+    # the starts run on the whole tile instead.
+    def noisy(im, *a):
+        shapes.append(im.shape)
+        starts = fine(im, *a)
+        if im.shape == (64, 64):
+            noise = np.random.default_rng(0).standard_normal(im.shape).astype(np.float32)
+            starts = [(noise, albedo) for _, albedo in starts]
+        return starts
+
+    shapes.clear()
+    monkeypatch.setattr(shading, "_fine_starts", noisy)
+    again = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True, weave_basis_px=np.diag([16.0, 16.0]))
+    assert shapes == [(64, 64), (208, 208)]
+    assert normalised_height_error(again.height, truth) < 0.1
+
 
 def test_a_weave_window_is_not_treated_as_lit_along_its_own_diagonal(monkeypatch):
     # A plain weave on a 16 px square lattice over a 96 x 208 px window, lit along the
