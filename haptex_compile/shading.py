@@ -1294,15 +1294,17 @@ def _fine_starts_on_cell(img, weight, light: Light, albedo0: float, domain_kwarg
                          basis_px, raw: np.ndarray) -> list:
     """:func:`_fine_starts` for a domain that repeats a weave's lattice (`basis_px`, columns
     t1, t2 in pixels; the domain is exactly periodic on it): the starts run on a small
-    periodic window of the lattice's averaged tile (the same solution repeats in every cell),
-    the one of lowest energy there is painted over the domain and polished with
-    ``FINE_POLISH_GN`` Gauss-Newton steps; returned as a list of one. The starts run on the
-    domain itself when no window of at most a quarter of the domain strains the lattice by
-    ``FINE_WINDOW_STRAIN`` or less, or when the window's solution does not repeat in every
-    cell (departs from its cell average by more than ``FINE_REPEAT_MAX`` in RMS): on the
-    bench's synthetic weaves it departs by 0-5 % (interpolation), on the real
-    ``plain-2000px.jpg`` (light estimated 10° off a weave direction at slant 30°) by 85 %, where the
-    painted average started the polish at 15 x the energy of the domain's best start.
+    periodic window of the lattice's averaged tile (a weave's solution repeats in every
+    cell), the one of lowest energy there is averaged over the cell, painted over the domain
+    and polished with ``FINE_POLISH_GN`` Gauss-Newton steps; returned as a list of one.
+
+    The starts run on the domain itself when no window of at most a quarter of the domain
+    strains the lattice by ``FINE_WINDOW_STRAIN`` or less, or when the window's solution
+    does not repeat in every cell (its RMS departure from its cell average above
+    ``FINE_REPEAT_MAX`` of its RMS). On the bench's synthetic weaves it departs by 0-5 %
+    (interpolation); on the real ``plain-2000px.jpg`` (light estimated 10° off a weave
+    direction at slant 30°) by 85 %, and there the painted average started the polish at
+    15 x the energy of the domain's best start.
 
     `raw` is the image with its unknown pixels NaN: the window is painted from the raw
     intensities, attached shadows included (from the domain image, whose invalid pixels hold
