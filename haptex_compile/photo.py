@@ -29,10 +29,6 @@ from haptex_compile.surface import Surface
 
 LOG = logging.getLogger("haptex.photo")
 DEFAULT_RELIEF_RMS_UM = 10.0  # RMS height of a photo's relief when nothing else gives a scale
-# The light is estimated on a periodic window of the tile with sides in this range (px), the
-# lattice strained by at most this much (see _light_from_small_window).
-LIGHT_WINDOW_PX = (64, 256)
-LIGHT_WINDOW_STRAIN = 0.02
 
 
 def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_size_um: float,
@@ -311,16 +307,15 @@ def _light_from_small_window(tile: np.ndarray, basis_px: np.ndarray):
 
     The light search solves its candidates on images of at most a few hundred pixels; a large
     window reduced that far averages the weave's cells away. A window of at most
-    ``LIGHT_WINDOW_PX`` (the lattice strained by up to ``LIGHT_WINDOW_STRAIN``: the light does
-    not depend on a 2 % strain) keeps full resolution. Measured with ``bench/bench_photo.py``'s
-    eight rendered reliefs: median height error 0.25 against 0.66 with the light estimated on
-    the surface's window. (None, None) when no such window exists.
+    ``tiles.SMALL_WINDOW_PX`` (the lattice strained by up to ``tiles.SMALL_WINDOW_STRAIN``: the
+    light does not depend on a 2 % strain) keeps full resolution. Measured with
+    ``bench/bench_photo.py``'s eight rendered reliefs: median height error 0.25 against 0.66
+    with the light estimated on the surface's window. (None, None) when no such window exists.
     """
     from haptex_compile.shading import estimate_light
-    from haptex_compile.tiles import paint_tile, periodic_window
+    from haptex_compile.tiles import paint_tile, small_periodic_window
 
-    small = periodic_window(basis_px, min_px=LIGHT_WINDOW_PX[0], max_px=LIGHT_WINDOW_PX[1],
-                            strain=LIGHT_WINDOW_STRAIN / 3.0, max_strain=LIGHT_WINDOW_STRAIN)
+    small = small_periodic_window(basis_px)
     if small is None:
         return None, None
     basis, (rows, cols) = small

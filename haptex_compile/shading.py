@@ -60,7 +60,7 @@ ALIGNED_TILT_DEG = 3.0
 # direction 0, 3, 8, 12, 20, 30°): 54 lights below 0.15, 25 of them with height errors above
 # 0.1 from the pyramid alone (up to 0.76, plain weaves lit 3° off their yarns at 30°); 18 above
 # it, errors at most 0.105. Below it the solve adds starts at full resolution
-# (_fine_starts, on a small window of the lattice: _fine_starts_on_cell), which leaves 7
+# (_fine_starts, on a small window of the lattice: _start_from_cell), which leaves 7
 # above 0.1 (up to 0.74); at slant 15° every tilt is below it on a square lattice.
 WEAVE_VISIBILITY_MIN = 0.15
 # Joint light search (see _refine_light): reduced image side, the assumed alignment of the best
@@ -1056,7 +1056,7 @@ def shape_from_shading(
         The lattice of a periodic tile's relief (columns t1, t2 in pixels, a reduced basis),
         when known (a weave photo's tile). Light nearly along one of its weave directions
         (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and solved from
-        more starts (see :func:`_fine_starts_on_cell`). Without it, light along the tile's axes
+        more starts (see :func:`_start_from_cell`). Without it, light along the tile's axes
         and diagonals is; with it, only when the light is also near a weave direction (a
         weave's window is cut to repeat the lattice, and its own axes mean nothing).
 
@@ -1175,14 +1175,14 @@ def shape_from_shading(
         starts = [(z, albedo)]
         if aligned is not None:
             starts += _held_starts(dom_img, weight, light, albedo_start, kwargs)
+        from_cell = None
         if along_weave is not None:
             # The raw intensities (shadows and highlights included; unknown pixels NaN) for
             # the small window's tile: the domain image has its invalid pixels filled.
             known = np.isfinite(img) if mask is None else np.isfinite(img) & np.asarray(mask, bool)
-            starts += _fine_starts_on_cell(dom_img, weight, light, albedo_start, domain_kwargs,
-                                           weave_basis_px, np.where(known, img, np.nan))
-        else:
-            starts += _fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
+            from_cell = _start_from_cell(dom_img, weight, light, albedo_start, domain_kwargs,
+                                         weave_basis_px, np.where(known, img, np.nan))
+        starts += from_cell or _fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
         z, albedo = _lowest_energy(dom_img, weight, light, domain_kwargs, starts)
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
@@ -1259,7 +1259,7 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     than 0.03. Cost: up to 2 x ``FINE_START_GN`` steps at full resolution (3 x when the light
     runs along the domain's axes or diagonals): on a plain weave tile of 1024 px lit 3° off
     its yarns, 12-13 s instead of 0.6 s. A weave's tile runs them on a small window of its
-    lattice instead (:func:`_fine_starts_on_cell`).
+    lattice instead (:func:`_start_from_cell`).
     """
     from haptex_compile.shading_variational import solve_variational
 
@@ -1280,31 +1280,29 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
 
 
 # The full-resolution starts of a weave's tile run on a small periodic window of its lattice
-# (sides in this range, the lattice strained by at most FINE_WINDOW_STRAIN, as for the light
-# search's window), and the best is painted over the domain and polished there with
-# FINE_POLISH_GN steps, if it repeats in every cell of the window (its RMS departure from its
-# cell average at most FINE_REPEAT_MAX of its RMS); see _fine_starts_on_cell.
-FINE_WINDOW_PX = (64, 256)
-FINE_WINDOW_STRAIN = 0.02
+# (tiles.small_periodic_window, as for the light search), and the best is painted over the
+# domain and polished there with FINE_POLISH_GN steps, if it repeats in every cell of the
+# window (its RMS departure from its cell average at most FINE_REPEAT_MAX of its RMS); see
+# _start_from_cell.
 FINE_POLISH_GN = 3
 FINE_REPEAT_MAX = 0.2
 
 
-def _fine_starts_on_cell(img, weight, light: Light, albedo0: float, domain_kwargs: dict,
-                         basis_px, raw: np.ndarray) -> list:
+def _start_from_cell(img, weight, light: Light, albedo0: float, domain_kwargs: dict,
+                     basis_px, raw: np.ndarray) -> list | None:
     """:func:`_fine_starts` for a domain that repeats a weave's lattice (`basis_px`, columns
-    t1, t2 in pixels; the domain is exactly periodic on it): the starts run on a small
-    periodic window of the lattice's averaged tile (a weave's solution repeats in every
-    cell), the one of lowest energy there is averaged over the cell, painted over the domain
-    and polished with ``FINE_POLISH_GN`` Gauss-Newton steps; returned as a list of one.
+    t1, t2 in pixels; the domain is exactly periodic on it), run on a small periodic window of
+    the lattice's averaged tile (a weave's solution repeats in every cell): the one of lowest
+    energy there is averaged over the cell, painted over the domain and polished with
+    ``FINE_POLISH_GN`` Gauss-Newton steps; returned as a list of one.
 
-    The starts run on the domain itself when no window of at most a quarter of the domain
-    strains the lattice by ``FINE_WINDOW_STRAIN`` or less, or when the window's solution
-    does not repeat in every cell (its RMS departure from its cell average above
-    ``FINE_REPEAT_MAX`` of its RMS). On the bench's synthetic weaves it departs by 0-5 %
-    (interpolation); on the real ``plain-2000px.jpg`` (light estimated 10° off a weave
-    direction at slant 30°) by 85 %, and there the painted average started the polish at
-    15 x the energy of the domain's best start.
+    None (the caller runs the starts on the domain itself) when no window of at most a
+    quarter of the domain strains the lattice by ``tiles.SMALL_WINDOW_STRAIN`` or less, or
+    when the window's solution does not repeat in every cell (its RMS departure from its
+    cell average above ``FINE_REPEAT_MAX`` of its RMS). On the bench's synthetic weaves it
+    departs by 0-5 % (interpolation); on the real ``plain-2000px.jpg`` (light estimated 10°
+    off a weave direction at slant 30°) by 85 %, and there the painted average started the
+    polish at 15 x the energy of the domain's best start.
 
     `raw` is the image with its unknown pixels NaN: the window is painted from the raw
     intensities, attached shadows included (from the domain image, whose invalid pixels hold
@@ -1321,35 +1319,27 @@ def _fine_starts_on_cell(img, weight, light: Light, albedo0: float, domain_kwarg
     """
     from haptex_compile.lattice import Lattice
     from haptex_compile.shading_variational import solve_variational
-    from haptex_compile.tiles import average_tile, paint_tile, periodic_window
+    from haptex_compile.tiles import average_tile, paint_tile, small_periodic_window
 
     basis = np.asarray(basis_px, dtype=float)
-    small = periodic_window(basis, min_px=FINE_WINDOW_PX[0], max_px=FINE_WINDOW_PX[1],
-                            strain=FINE_WINDOW_STRAIN / 3.0, max_strain=FINE_WINDOW_STRAIN)
+    small = small_periodic_window(basis)
     if small is None or small[1][0] * small[1][1] > img.size / 4:
-        return _fine_starts(img, weight, light, albedo0, domain_kwargs)
+        return None
 
-    def cell(b):
-        return Lattice(True, b[:, 0], b[:, 1], 1.0, "the domain's lattice")
-
-    def tile_of(a, b):
-        return average_tile(a, cell(b), combine="mean", samples_per_px=2.0, flatten_sigma_px=None).tile
+    def cell_average(a, b):
+        return average_tile(a, Lattice(True, b[:, 0], b[:, 1], 1.0, "the domain's lattice"),
+                            combine="mean", samples_per_px=2.0, flatten_sigma_px=None)
 
     b_small, shape_small = small
-    small_img = np.clip(paint_tile(tile_of(raw, basis), b_small, shape_small), 0.0, None)
-    small_valid = valid_pixels(small_img)
-    small_kwargs = {}
-    if CENSORED:
-        small_kwargs.update(zip(("dark", "bright"), _censored_pixels(small_img)))
-    small_weight = small_valid.astype(np.float32)
+    small_img = np.clip(paint_tile(cell_average(raw, basis).tile, b_small, shape_small), 0.0, None)
+    small_weight = valid_pixels(small_img).astype(np.float32)
+    small_kwargs = dict(zip(("dark", "bright"), _censored_pixels(small_img))) if CENSORED else {}
     z, a = _lowest_energy(small_img, small_weight, light, small_kwargs,
                           _fine_starts(small_img, small_weight, light, albedo0, small_kwargs))
-    tile = tile_of(z, b_small)
-    if np.std(z - paint_tile(tile, b_small, z.shape)) > FINE_REPEAT_MAX * np.std(z):
-        # The window's solution does not repeat in every cell (its cell average would not be
-        # a solution): the starts run on the domain itself.
-        return _fine_starts(img, weight, light, albedo0, domain_kwargs)
-    z0 = paint_tile(tile, basis, img.shape)
+    average = cell_average(z, b_small)  # .synthetic: painted back over the window
+    if np.std(z - average.synthetic) > FINE_REPEAT_MAX * np.std(z):
+        return None  # its cell average would not be a solution
+    z0 = paint_tile(average.tile, basis, img.shape)
     return [solve_variational(img, weight, light.vector, a, z0=z0, max_levels=1, fine_gn=FINE_POLISH_GN,
                               fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **domain_kwargs)]
 

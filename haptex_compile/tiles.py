@@ -333,6 +333,21 @@ def periodic_window(basis_px: np.ndarray, min_px: int = 256, max_px: int = 1024,
     return strained, (h, w)
 
 
+# The smallest periodic windows of a lattice, for solvers that need its cell only (the light
+# search, the weave starts of shape from shading): sides in this range (px), the lattice
+# strained by at most this much (a third of it preferred).
+SMALL_WINDOW_PX = (64, 256)
+SMALL_WINDOW_STRAIN = 0.02
+
+
+def small_periodic_window(basis_px: np.ndarray) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """:func:`periodic_window` with sides in ``SMALL_WINDOW_PX``, the lattice strained by at
+    most ``SMALL_WINDOW_STRAIN`` (the smallest side within a third of it, else the least
+    strain); None when there is none."""
+    return periodic_window(basis_px, min_px=SMALL_WINDOW_PX[0], max_px=SMALL_WINDOW_PX[1],
+                           strain=SMALL_WINDOW_STRAIN / 3.0, max_strain=SMALL_WINDOW_STRAIN)
+
+
 def average_tile(image: np.ndarray, lattice: Lattice, *, combine: str = "median",
                  samples_per_px: float = 1.0, flatten_sigma_px: float | str | None = "auto"
                  ) -> TileAverage:
