@@ -630,6 +630,12 @@ def estimated_light_note(light: Light) -> str:
         " width of the misfit's minimum and does not cover other minima: on low lattice reliefs"
         " lit at 15-30° the search has settled 4-23° steeper, so give --light when it is known)"
     )
+    if light.slant_sd_deg > 0 and light.slant_deg <= MIN_SLANT_DEG:
+        note += (
+            f"; the slant is the search's lowest ({MIN_SLANT_DEG:g}°): the light may be nearer the"
+            " view axis still (diffuse or coaxial light, as in inspection photos), where the shading"
+            " barely fixes the slopes' signs: give --light if it is known"
+        )
     if light.albedo_at_bound:
         note += (
             "; UNRELIABLE: the misfit was lowest on a plateau of lights with the albedo at its"
@@ -1121,10 +1127,17 @@ def shape_from_shading(
         visibility, weave_tilt = weave_visibility(light, weave_basis_px)
         if visibility < WEAVE_VISIBILITY_MIN:
             along_weave = (visibility, weave_tilt)
+            if np.sin(np.deg2rad(light.slant_deg)) < WEAVE_VISIBILITY_MIN:
+                # Every direction is below the threshold: the cause is the slant, not the tilt.
+                where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly overhead, so"
+                         f" sin(slant) x sin(angle to any weave direction) is below {WEAVE_VISIBILITY_MIN:g}"
+                         f" (at the direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: {visibility:.3f})")
+            else:
+                where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
+                         f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between"
+                         f" them) = {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g}")
             warnings.append(
-                f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
-                f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between them) ="
-                f" {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g}, so the profiles across that direction (the yarns'"
+                f"{where}, so the profiles across that direction (the yarns'"
                 " cross-sections) barely shade; solved from 2-3 more starts at full resolution (on a small"
                 " periodic window of the lattice, the best polished on the tile), the lowest energy kept, and"
                 " they may still come back wrong (bench: of 54 such lights on plain weaves and"

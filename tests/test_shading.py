@@ -1149,3 +1149,26 @@ def test_weave_visibility_is_the_linear_shading_of_waves_across_each_weave_direc
     oblique = np.array([[7.05, -11.25], [9.4, 6.3]])  # reduced: t1 + t2 is (-4.2, 15.7)
     v, d = weave_visibility(Light(30.0, np.degrees(np.arctan2(15.7, -4.2)) + 180.0), oblique)
     assert v == pytest.approx(0.0, abs=1e-12) and d == pytest.approx(np.degrees(np.arctan2(15.7, -4.2)))
+
+
+def test_near_overhead_light_is_warned_of_as_such_not_as_along_a_weave_direction():
+    # At slant 6°, sin(slant) = 0.105 < WEAVE_VISIBILITY_MIN: every weave direction's profiles
+    # shade weakly whatever the tilt, and the warning names the slant (here the tilt is 20°
+    # off t1, the nearest direction: sin 6° sin 20° = 0.036). At slant 30°, 2° off t1, the
+    # tilt is the cause (0.017).
+    from haptex_compile.synth_images import weave_image
+
+    truth = 40.0 * weave_image((64, 64), (16.0, 0.0), (0.0, 16.0), kind="plain")
+    basis = np.diag([16.0, 16.0])
+    for light, overhead in ((Light(6.0, 20.0), True), (Light(30.0, 2.0), False)):
+        img = render_lambertian(truth, PX, light, 0.8, periodic=True)
+        res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True, weave_basis_px=basis)
+        assert any("nearly overhead" in w for w in res.warnings) == overhead
+        assert any("nearly along the weave direction" in w for w in res.warnings) != overhead
+
+
+def test_an_estimated_slant_at_the_searchs_lowest_is_noted():
+    # The search's slants start at MIN_SLANT_DEG: an estimate there is an edge, not a minimum.
+    low = Light(shading.MIN_SLANT_DEG, 200.0, 2.0, 3.0)
+    assert "search's lowest" in shading.estimated_light_note(low)
+    assert "search's lowest" not in shading.estimated_light_note(Light(12.0, 200.0, 2.0, 3.0))
