@@ -1224,11 +1224,12 @@ def _lowest_energy(img, weight, light: Light, domain_kwargs: dict, starts: list,
     ``CELL_REPEAT_MAX`` of its RMS), the solves are scored by the energies of their cell
     averages (:func:`_cell_average`), painted back over the domain: the heights a weave's
     surface keeps (``photo.photo_surface`` averages them over the lattice). On the real
-    photos in ``../shared/fabrics`` lit near a weave direction the solves depart by 32-100 %
-    and their averages' energies are 3-34 x their own, in another order. Solves that repeat
-    (the bench's synthetic weaves: 1-5 %) keep their own energies: the average's
-    interpolation doubles them there, and ranked by it the bench's weave-direction table lost
-    (plain weave on the oblique lattice at 45°, 8° off t1: 0.081 -> 0.147).
+    photos in ``../shared/fabrics`` lit near a weave direction or overhead (as estimated) the
+    solves depart by 32-100 % and their averages' energies are 3-34 x their own, in another
+    order. Solves that repeat (the bench's synthetic weaves: 1-5 %) keep their own energies:
+    the average's interpolation doubles them there, and ranked by it the bench's
+    weave-direction table lost (plain weave on the oblique lattice at 45°, 8° off t1: 0.081
+    -> 0.147).
     """
     from haptex_compile.shading_variational import energy
 
