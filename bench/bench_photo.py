@@ -13,7 +13,9 @@ Baseline, measured in the same run: the surface on the whole photo, shaded with 
 when estimated, estimated on the whole photo (the pipeline estimates it on a small periodic
 window of the tile, at most 256 px). For estimated lights the table shows the window's estimate
 and its error: the slant's, and the angle between the tilts' axes (a tilt and the tilt + 180°
-light the same relief, bumps versus dents, with the heights negated).
+light the same relief, bumps versus dents, with the heights negated), and what it changes in
+what users feel: the window's mean a40 and a320 (``tables.mean_tactile``) against those of
+the window solved with the light given.
 
 A second table stretches the photo quadratically from its centre (a weave that drifts across
 the photo, as real ones do) and compares the tile averaged over the whole photo (baseline) with
@@ -45,6 +47,7 @@ from haptex_compile.shading import (  # noqa: E402
     WEAVE_VISIBILITY_MIN, Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
 )
 from haptex_compile.sources import SourceOptions  # noqa: E402
+from haptex_compile.tables import mean_tactile  # noqa: E402
 from haptex_compile.synth_images import lattice_relief, stretch_from_centre, weave_image  # noqa: E402
 
 PIXEL_UM = 20.0
@@ -58,15 +61,24 @@ def _reliefs(t1, t2) -> dict[str, np.ndarray]:
             "plain weave": 40.0 * weave_image((SIZE, SIZE), t1, t2, kind="plain")}
 
 
-def _solve(image: np.ndarray, truth: np.ndarray, light, whole: bool) -> tuple[float, float, dict]:
+def _pipeline(image: np.ndarray, truth: np.ndarray, light, whole: bool):
+    """The photo pipeline's result on `image` (the truth's RMS as relief) and its seconds."""
     options = SourceOptions(light=light, roughness="none", relief_um=float(np.std(truth)))
     with mock.patch.object(tiles, "periodic_window", lambda *a, **k: None) if whole else contextlib.nullcontext():
         t0 = time.perf_counter()
         result = photo_surface(image, PIXEL_UM, options, "bench", {})
-        seconds = time.perf_counter() - t0
+        return result, time.perf_counter() - t0
+
+
+def _height_error(result, truth: np.ndarray) -> float:
+    """Normalised height error of the pipeline's surface over every other pixel of the photo."""
     y, x = np.mgrid[0:SIZE:2, 0:SIZE:2]
-    height = heights_at_image_px(result, x.ravel(), y.ravel())
-    return normalised_height_error(height, truth[y, x].ravel()), seconds, result.report["shading"]
+    return normalised_height_error(heights_at_image_px(result, x.ravel(), y.ravel()), truth[y, x].ravel())
+
+
+def _solve(image: np.ndarray, truth: np.ndarray, light, whole: bool) -> tuple[float, float, dict]:
+    result, seconds = _pipeline(image, truth, light, whole)
+    return _height_error(result, truth), seconds, result.report["shading"]
 
 
 def _light_cells(shading: dict, light) -> str:
@@ -80,8 +92,8 @@ def _light_cells(shading: dict, light) -> str:
 
 
 def run(quick: bool = False) -> str:
-    rows = ["| relief | lattice t1; t2 (px) | light slant, tilt (°) | light | whole image (baseline): error | s | periodic window: error | s | window (px) | window's light: slant, tilt (°) | its error: slant, tilt axis (°) | error ratio window / whole | time ratio |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    rows = ["| relief | lattice t1; t2 (px) | light slant, tilt (°) | light | whole image (baseline): error | s | periodic window: error | s | window (px) | window's light: slant, tilt (°) | its error: slant, tilt axis (°) | error ratio window / whole | time ratio | window's a40 / a320 against the given light's |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     ratios: dict[str, list[float]] = {"given": [], "estimated": []}
     times: list[float] = []
     for t1, t2, light in (CASES[:2] if quick else CASES):
@@ -89,14 +101,21 @@ def run(quick: bool = False) -> str:
             image = render_lambertian(truth, PIXEL_UM, Light(*light), 0.8)
             for given in (True, False):
                 e_whole, s_whole, _ = _solve(image, truth, light if given else None, whole=True)
-                e_win, s_win, shading = _solve(image, truth, light if given else None, whole=False)
+                result, s_win = _pipeline(image, truth, light if given else None, whole=False)
+                e_win, shading = _height_error(result, truth), result.report["shading"]
+                # What users feel: the tables' mean a40, a320 of the window (same relief).
+                tactile = mean_tactile(result.surface.height_um, PIXEL_UM, periodic=True)
+                if given:
+                    tactile_given, change = tactile, ""
+                else:
+                    change = " / ".join(f"{tactile[k] / tactile_given[k] - 1:+.0%}" for k in ("a40", "a320"))
                 where = shading["solved_on"].replace("a periodic window of ", "")
                 used = "given | " if given else _light_cells(shading, light)
                 label = "given" if given else "estimated"
                 ratios[label].append(e_win / e_whole)
                 times.append(s_win / s_whole)
                 rows.append(f"| {name} | {t1}; {t2} | {light[0]:g}, {light[1]:g} | {label} | {e_whole:.3f} | {s_whole:.2f} "
-                            f"| {e_win:.3f} | {s_win:.2f} | {where} | {used} | {e_win / e_whole:.2f} | {s_win / s_whole:.2f} |")
+                            f"| {e_win:.3f} | {s_win:.2f} | {where} | {used} | {e_win / e_whole:.2f} | {s_win / s_whole:.2f} | {change} |")
     summary = (f"\nMedian error ratio window / whole image: light given {statistics.median(ratios['given']):.2f}, "
                f"light estimated {statistics.median(ratios['estimated']):.2f}; median time ratio {statistics.median(times):.2f} "
                f"({SIZE} x {SIZE} px of {PIXEL_UM:g} µm, whole pipeline per case).\n")
@@ -182,8 +201,9 @@ def _weave_direction_rows(quick: bool) -> str:
 
 def _light_sensitivity_rows() -> str:
     """Two of the photos with the light given a few degrees off the true one: the height error,
-    and the RMS misfit of the solver's heights to the image it solved (the surface's window),
-    in 8-bit grey levels."""
+    the change of the tactile summary (``tables.mean_tactile`` of the surface) from the true
+    light's, and the RMS misfit of the solver's heights to the image it solved (the surface's
+    window), in 8-bit grey levels."""
     from haptex_compile import shading
     from haptex_compile.shading_variational import reflectance
 
@@ -195,9 +215,10 @@ def _light_sensitivity_rows() -> str:
         return solved["result"]
 
     offsets = [(0.0, 0.0), (-3.0, 0.0), (-1.5, 0.0), (1.5, 0.0), (3.0, 0.0), (0.0, -3.0), (0.0, -1.5), (0.0, 1.5), (0.0, 3.0)]
-    rows = ["Light given off the true one (slant, tilt offsets): the height error, and the RMS misfit of the solver's heights"
-            " to the shading it solved (the surface's window, valid pixels), in 8-bit grey levels; rounding to 8 bits alone"
-            f" leaves {1 / np.sqrt(12):.2f} grey levels RMS. Lights 1.5-3° off are explained to within about that rounding"
+    rows = ["Light given off the true one (slant, tilt offsets): the height error; the change of the surface's mean a40 and"
+            " a320 (`tables.mean_tactile`, 4 directions x 3 speeds) from the true light's surface; and the RMS misfit of the"
+            " solver's heights to the shading it solved (the surface's window, valid pixels), in 8-bit grey levels: rounding"
+            f" to 8 bits alone leaves {1 / np.sqrt(12):.2f}. Lights 1.5-3° off are explained to within about that rounding"
             " (and the solver's own residual at the true light is not zero), so an 8-bit photo hardly fixes the light to"
             " better than a few degrees; the heights are this sensitive to it (the first table's estimated lights):", "",
             "| relief | lattice t1; t2 (px) | true light slant, tilt (°) | " + " | ".join(f"{a:+g}, {b:+g}" for a, b in offsets) + " |",
@@ -205,17 +226,20 @@ def _light_sensitivity_rows() -> str:
     for (t1, t2, light), relief in ((CASES[1], "smooth cell"), (CASES[0], "plain weave")):
         truth = _reliefs(t1, t2)[relief]
         image = render_lambertian(truth, PIXEL_UM, Light(*light), 0.8)
-        cells = []
+        cells, reference = [], None
         for d_slant, d_tilt in offsets:
             with mock.patch.object(shading, "shape_from_shading", spy):
-                err, _, _ = _solve(image, truth, (light[0] + d_slant, light[1] + d_tilt), whole=False)
+                result, _ = _pipeline(image, truth, (light[0] + d_slant, light[1] + d_tilt), whole=False)
             res, window = solved["result"], solved["image"]
             valid = shading.valid_pixels(window)
             model = res.albedo * reflectance(res.height / PIXEL_UM, res.light.vector)
             misfit = 255.0 * float(np.sqrt(np.mean((model - window)[valid] ** 2)))
-            cells.append(f"{err:.3f} ({misfit:.2f})")
+            tactile = mean_tactile(result.surface.height_um, PIXEL_UM, periodic=True)
+            reference = reference or tactile  # the true light's (the first offset)
+            change = " / ".join(f"{tactile[k] / reference[k] - 1:+.0%}" for k in ("a40", "a320"))
+            cells.append(f"{_height_error(result, truth):.3f}; {change}; {misfit:.2f}")
         rows.append(f"| {relief} | {t1}; {t2} | {light[0]:g}, {light[1]:g} | " + " | ".join(cells) + " |")
-    return "\n".join(rows) + "\n\nEach cell: height error (misfit RMS in grey levels).\n"
+    return "\n".join(rows) + "\n\nEach cell: height error; a40 / a320 change; misfit RMS (grey levels).\n"
 
 
 def main(argv: list[str] | None = None) -> int:
