@@ -67,6 +67,18 @@ def summary(path: str) -> str:
             x0, y0, w, h = photo_lattice["region_px"]
             where = f"the variance of the central {w} x {h} px at ({x0}, {y0}), where it was averaged"
         lines.append(f"  tile       explains {photo_lattice['tile_explained_variance']:.1%} of {where}")
+    shading = report.get("shading")
+    if isinstance(shading, dict) and "light_slant_deg" in shading:
+        if shading.get("light_given"):
+            how = "given"
+        else:
+            how = "estimated" + (f" on {shading['light_estimated_on']}" if "light_estimated_on" in shading else "")
+            how += ", UNRELIABLE" if shading.get("light_albedo_at_bound") else ""
+        lines.append(f"  shading    {shading.get('method', '?')}, light slant {float(shading['light_slant_deg']):.1f} deg, "
+                     f"tilt {float(shading['light_tilt_deg']):.1f} deg ({how}); solved on {shading.get('solved_on', '?')}, "
+                     f"weave visibility {float(shading.get('weave_visibility', float('nan'))):.3f}")
+        # The shading's warnings, as the compile printed them (the estimated light's note first).
+        lines += [f"  warning    {w}" for w in shading.get("warnings", [])]
     rough = report.get("roughness")
     if isinstance(rough, dict) and "warning" in rough:
         lines.append(f"  warning    {rough['warning']}")

@@ -1129,7 +1129,7 @@ def shape_from_shading(
             along_weave = (visibility, weave_tilt)
             if np.sin(np.deg2rad(light.slant_deg)) < WEAVE_VISIBILITY_MIN:
                 # Every direction is below the threshold: the cause is the slant, not the tilt.
-                where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly overhead, so"
+                where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly overhead:"
                          f" sin(slant) x sin(angle to any weave direction) is below {WEAVE_VISIBILITY_MIN:g}"
                          f" (at the direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: {visibility:.3f})")
             else:

@@ -1,6 +1,7 @@
 """haptex-compile / haptex-inspect / haptex-play as a Makefile would use them."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -70,8 +71,15 @@ def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path):
 
     from haptex_compile.inspect_cli import summary
 
-    line = next(x for x in summary(str(out)).splitlines() if x.lstrip().startswith("tile"))
+    lines = summary(str(out)).splitlines()
+    line = next(x for x in lines if x.lstrip().startswith("tile"))
     assert float(re.search(r"explains ([0-9.]+)% of the photo's variance", line).group(1)) > 95.0
+    # No --light: inspect names the estimated light the report holds, and its warnings.
+    shading = json.loads(report)["shading"]
+    line = next(x for x in lines if x.lstrip().startswith("shading"))
+    assert f"light slant {shading['light_slant_deg']:.1f} deg, tilt {shading['light_tilt_deg']:.1f} deg (estimated on" in line
+    assert [x.split("warning    ", 1)[1] for x in lines if x.lstrip().startswith("warning")][:len(shading["warnings"])] == shading["warnings"]
+    assert shading["warnings"][0].startswith("light estimated")
 
 
 def test_compile_writes_a_valid_asset(asset):
