@@ -1234,13 +1234,15 @@ def _lowest_energy(img, weight, light: Light, domain_kwargs: dict, starts: list,
     from haptex_compile.shading_variational import energy
 
     censored = {k: domain_kwargs[k] for k in ("dark", "bright") if k in domain_kwargs}
+    finite = [bool(np.all(np.isfinite(z))) for z, _ in starts]  # a non-finite solve comes last
     scored = [z for z, _ in starts]
     if basis_px is not None:
-        averages = [_cell_average(z, basis_px).synthetic for z in scored]
-        if any(np.std(z - a) > CELL_REPEAT_MAX * np.std(z) for z, a in zip(scored, averages)):
+        averages = [_cell_average(z, basis_px).synthetic if ok else z for (z, _), ok in zip(starts, finite)]
+        if any(ok and np.std(z - a) > CELL_REPEAT_MAX * np.std(z) for z, a, ok in zip(scored, averages, finite)):
             scored = averages
-    energies = [energy(img, weight, light.vector, a, z, **censored) for z, (_, a) in zip(scored, starts)]
-    return starts[int(np.argmin(energies))]
+    energies = [energy(img, weight, light.vector, a, z, **censored) if ok else np.inf
+                for z, (_, a), ok in zip(scored, starts, finite)]
+    return starts[int(np.argmin(np.nan_to_num(energies, nan=np.inf)))]
 
 
 def _cell_average(z: np.ndarray, basis_px):

@@ -721,6 +721,10 @@ def test_a_weaves_solves_are_compared_by_the_energy_of_their_cell_averages():
     starts = [(flatter, 0.8), (noisy, 0.8)]
     assert shading._lowest_energy(img, weight, light, {}, starts)[0] is flatter
     assert shading._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
+    # A non-finite solve is never kept, and does not stop the others being averaged.
+    starts.insert(0, (np.full_like(z_true, np.nan), 0.8))
+    assert shading._lowest_energy(img, weight, light, {}, starts)[0] is flatter
+    assert shading._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
 
 
 def test_a_weave_window_is_not_treated_as_lit_along_its_own_diagonal(monkeypatch):
