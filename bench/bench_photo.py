@@ -76,6 +76,11 @@ def _height_error(result, truth: np.ndarray) -> float:
     return normalised_height_error(heights_at_image_px(result, x.ravel(), y.ravel()), truth[y, x].ravel())
 
 
+def _tactile_change(tactile: dict, reference: dict) -> str:
+    """"a40 / a320" relative changes of `tactile` from `reference` (``tables.mean_tactile``)."""
+    return " / ".join(f"{tactile[k] / reference[k] - 1:+.0%}" for k in ("a40", "a320"))
+
+
 def _solve(image: np.ndarray, truth: np.ndarray, light, whole: bool) -> tuple[float, float, dict]:
     result, seconds = _pipeline(image, truth, light, whole)
     return _height_error(result, truth), seconds, result.report["shading"]
@@ -108,7 +113,7 @@ def run(quick: bool = False) -> str:
                 if given:
                     tactile_given, change = tactile, ""
                 else:
-                    change = " / ".join(f"{tactile[k] / tactile_given[k] - 1:+.0%}" for k in ("a40", "a320"))
+                    change = _tactile_change(tactile, tactile_given)
                 where = shading["solved_on"].replace("a periodic window of ", "")
                 used = "given | " if given else _light_cells(shading, light)
                 label = "given" if given else "estimated"
@@ -236,8 +241,7 @@ def _light_sensitivity_rows() -> str:
             misfit = 255.0 * float(np.sqrt(np.mean((model - window)[valid] ** 2)))
             tactile = mean_tactile(result.surface.height_um, PIXEL_UM, periodic=True)
             reference = reference or tactile  # the true light's (the first offset)
-            change = " / ".join(f"{tactile[k] / reference[k] - 1:+.0%}" for k in ("a40", "a320"))
-            cells.append(f"{_height_error(result, truth):.3f}; {change}; {misfit:.2f}")
+            cells.append(f"{_height_error(result, truth):.3f}; {_tactile_change(tactile, reference)}; {misfit:.2f}")
         rows.append(f"| {relief} | {t1}; {t2} | {light[0]:g}, {light[1]:g} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n\nEach cell: height error; a40 / a320 change; misfit RMS (grey levels).\n"
 

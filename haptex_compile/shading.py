@@ -1145,14 +1145,14 @@ def shape_from_shading(
                 " light the fabric so that this product is at least"
                 f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)"
             )
-    aligned = _tile_aligned_tilt(light.tilt_deg, img.shape) if periodic else None
-    if weave_basis_px is not None:
-        # A weave's window: its axes and diagonals matter only where they run along a weave
-        # direction (warned above; the held starts still run); elsewhere the waves across them
-        # are not the weave's (bench/bench_photo.py's plain weave lit 30° off t1, along the
-        # 975 x 787 px window's diagonal: the same height error, 7.0 s -> 1.6 s).
-        aligned = aligned if along_weave is not None else None
-    elif aligned is not None and light.slant_deg >= MIN_SLANT_DEG:
+    # A weave's window: its axes and diagonals matter only where they run along a weave
+    # direction (warned above; the held starts still run); elsewhere the waves across them are
+    # not the weave's (bench/bench_photo.py's plain weave lit 30° off t1, along the 975 x 787 px
+    # window's diagonal: the same height error, 7.0 s -> 1.6 s).
+    aligned = None
+    if periodic and (weave_basis_px is None or along_weave is not None):
+        aligned = _tile_aligned_tilt(light.tilt_deg, img.shape)
+    if weave_basis_px is None and aligned is not None and light.slant_deg >= MIN_SLANT_DEG:
         warnings.append(
             f"light tilt {light.tilt_deg:.1f}° within {ALIGNED_TILT_DEG:g}° of the periodic"
             f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
