@@ -25,6 +25,7 @@ from haptex_compile.shading import (
 from haptex_compile.shading_variational import reflectance
 
 PX = 20.0  # µm per pixel, as in the issue's anchors
+TILT_SCAN_DEG = shading.TILT_SCAN_DEG
 
 
 @pytest.fixture(scope="module")
@@ -1007,6 +1008,48 @@ def test_near_frontal_light_is_flagged_unreliable(bumps128):
     assert abs(est.slant_deg - 30.0) <= 3.0 and not est.albedo_at_bound
     assert "UNRELIABLE" not in shading.estimated_light_note(est)
     assert not Light(5.0, 30.0).albedo_at_bound  # a given light is never flagged
+
+
+def test_light_search_sweeps_the_tilt_where_the_statistics_mislead():
+    # A smooth relief on an oblique 16 px lattice lit at 15°, 30°: the lattice's own anisotropy
+    # turns the image statistics' tilt axis to 179°, and the local searches from there settled
+    # on a plateau 41° off (22°, 349°, flagged; height error 0.83). The tilt sweep at the first
+    # knee finds the true light's well, where the albedo is free.
+    from haptex_compile.synth_images import lattice_relief
+
+    h = lattice_relief((256, 256), (16, 0), (4, 16), amplitude_um=12.0)
+    truth = Light(15.0, 30.0)
+    img = render_lambertian(h, PX, truth, 0.8, periodic=True)
+    assert tilt_axis_difference_deg(shading._tilt_axis(img, valid_pixels(img))[0], 30.0) > TILT_SCAN_DEG
+    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
+    est = found.light
+    assert not est.albedo_at_bound
+    assert abs(est.slant_deg - 15.0) <= 1.0
+    assert tilt_axis_difference_deg(est.tilt_deg, 30.0) <= 2.0
+    given = shape_from_shading(img, pixel_size_um=PX, light=truth, periodic=True)
+    assert normalised_height_error(found.height, h) <= normalised_height_error(given.height, h) + 0.02
+
+
+def test_tilt_sweep_returns_only_a_deep_well_out_of_the_searchs_reach():
+    # A misfit with a well at tilt axis 100° (misfit 0.1 against 1 elsewhere), albedo free.
+    def coarse(slant, tilt, well=0.1, bound=False):
+        axis = tilt % 180.0
+        e = well if abs(axis - 100.0) < 6.0 else 1.0
+        return e, (2.0 if bound else 0.5)
+
+    coarse.at_bound = 1.0
+    swept = shading._swept_tilt(coarse, 30.0, 10.0, 10.0)
+    assert swept is not None and tilt_axis_difference_deg(swept, 100.0) < 6.0
+    # The search already ended within its final tilt scan of the well: nothing to do.
+    assert shading._swept_tilt(coarse, 30.0, 10.0, 100.0 + 0.9 * shading.TILT_SCAN_DEG) is None
+    # A shallow well (above SWEEP_GAIN of the statistical tilt's misfit) is not trusted.
+    shallow = lambda s, t: coarse(s, t, well=0.6)  # noqa: E731
+    shallow.at_bound = 1.0
+    assert shading._swept_tilt(shallow, 30.0, 10.0, 10.0) is None
+    # Lights whose albedo sits at the bound are not compared (the plateau fits anything).
+    bound = lambda s, t: coarse(s, t, bound=True)  # noqa: E731
+    bound.at_bound = 1.0
+    assert shading._swept_tilt(bound, 30.0, 10.0, 10.0) is None
 
 
 def test_light_below_the_plateau_is_found_on_a_lattice_relief():
