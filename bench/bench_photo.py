@@ -290,14 +290,14 @@ def _coarse_rows(quick: bool) -> str:
                 windowed = shading["solved_on"].startswith("a periodic window")
                 tactile = mean_tactile(result.surface.height_um, PIXEL_UM, periodic=windowed)
                 tactile_errors["given" if given else "estimated"] += [abs(tactile[k] / reference[k] - 1) for k in ("a40", "a320")]
+                error = f"{_height_error(result, truth):.3f} | {seconds:.2f}"
                 if given:
-                    cells.append(shading["solved_on"].replace("a periodic window of ", "window ").replace("the whole image", "whole"))
+                    where = shading["solved_on"].replace("a periodic window of ", "window ").replace("the whole image", "whole")
+                    cells += [where, error]
                 else:
                     on = shading.get("light_estimated_on", "the image").replace("a periodic window of ", "window ")
-                    cells.append(f"{_height_error(result, truth):.3f} | {seconds:.2f} | {on} | {_light_cells(shading, light)}")
-                    cells.append(_tactile_change(tactile, reference))
-                    continue
-                cells.append(f"{_height_error(result, truth):.3f} | {seconds:.2f} | {_tactile_change(tactile, reference)}")
+                    cells += [error, on, _light_cells(shading, light)]
+                cells.append(_tactile_change(tactile, reference))
             rows.append(f"| {name} | {t1}; {t2} | {light[0]:g}, {light[1]:g} | " + " | ".join(cells) + " |")
     rows.append(f"\nWorst |a40| or |a320| change against the true relief: light given {max(tactile_errors['given']):.0%},"
                 f" estimated {max(tactile_errors['estimated']):.0%}.\n")
