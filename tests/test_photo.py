@@ -56,6 +56,29 @@ def test_photo_of_a_periodic_relief_gives_back_the_relief(t1, t2, light):
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.05
 
 
+def test_a_lattice_with_no_periodic_window_is_solved_whole_and_averaged():
+    # Cells of 47 px on an oblique lattice: no window of at most 1024 px strains it by 0.3 % or
+    # less, so the photo is solved whole with free edges, then averaged over the lattice, and
+    # the surface repeats on the lattice, not on the pixel array (bench_photo's coarse table:
+    # 0.008 at 1024 px).
+    t1, t2, light = (-22.15, 41.0), (-37.03, -40.52), (40, 60)
+    assert periodic_window(np.array([t1, t2]).T, min_px=200, max_px=1024) is None
+    truth_um = lattice_relief((768, 768), t1, t2, amplitude_um=40.0)
+    image = render_lambertian(truth_um, PIXEL_UM, Light(*light), 0.8)
+    options = SourceOptions(light=light, roughness="none", relief_um=float(np.std(truth_um)))
+    result = photo_surface(image, PIXEL_UM, options, "rendered", {})
+    assert result.report["shading"]["solved_on"].startswith("the whole image")
+    assert result.surface.periodic and "surface" not in result.report  # no window recorded
+    found = np.column_stack([result.surface.t1_px, result.surface.t2_px])
+    # Its lattice is the relief's period: the painted cell vectors are integer combinations of
+    # its basis (this relief also repeats at half-sums of them, and the lattice found says so).
+    k = np.linalg.solve(found, np.array([t1, t2]).T)
+    assert np.allclose(k, np.rint(k), atol=0.02) and abs(round(float(np.linalg.det(np.rint(k))))) >= 1
+    y, x = np.mgrid[100:668:3, 100:668:3]
+    height = heights_at_image_px(result, x.ravel(), y.ravel())
+    assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.05
+
+
 def test_a_fine_diagonal_weave_is_solved_on_an_oversampled_tile(monkeypatch):
     # A plain weave of 12 px cells (the lattice found on a real 2000 px plain-weave photo):
     # at 1 tile sample per px the tile's two bicubic resamplings blur its shading, and the
