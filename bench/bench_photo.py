@@ -44,6 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from haptex_compile import tiles  # noqa: E402
+from haptex_compile.known_surfaces import rms_slope  # noqa: E402
 from haptex_compile.photo import heights_at_image_px, photo_surface  # noqa: E402
 from haptex_compile.shading import (  # noqa: E402
     WEAVE_VISIBILITY_MIN, Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
@@ -259,8 +260,7 @@ COARSE_SLOPE = 0.2
 def _at_slope(height_um: np.ndarray, slope: float) -> np.ndarray:
     """`height_um` scaled to an RMS slope of `slope` (the fixed amplitudes of ``_reliefs`` are
     gentle on coarse cells: RMS slope 0.05-0.09)."""
-    gy, gx = np.gradient(height_um / PIXEL_UM)
-    return height_um * (slope / float(np.sqrt(np.mean(gx * gx + gy * gy))))
+    return height_um * (slope / rms_slope(height_um, PIXEL_UM))
 
 
 def _coarse_rows(quick: bool) -> str:

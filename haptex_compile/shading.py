@@ -843,18 +843,20 @@ def _swept_tilt(coarse, slant: float, tilt: float, found_tilt: float) -> float |
     and its axis lies more than ``TILT_SCAN_DEG`` from `found_tilt`'s.
     """
     sweep = tilt + np.arange(0.0, 180.0, TILT_SWEEP_STEP_DEG)
-
-    def free(t):
-        e, albedo = coarse(slant, t)
-        return e if albedo < coarse.at_bound else np.inf
-
-    errs = [free(t) for t in sweep]
+    errs = [_free_misfit(coarse, slant, t) for t in sweep]
     best = int(np.argmin(errs))
     if not np.isfinite(errs[best]) or not errs[best] < SWEEP_GAIN * errs[0]:
         return None
     if tilt_axis_difference_deg(float(sweep[best]), found_tilt) <= TILT_SCAN_DEG:
         return None
     return float(sweep[best])
+
+
+def _free_misfit(fit, slant: float, tilt: float) -> float:
+    """The misfit `fit` gives the light, or infinity where its fitted albedo sits at the
+    search's bound (``fit.at_bound``: there the misfit does not fix the light)."""
+    misfit, albedo = fit(slant, tilt)
+    return misfit if albedo < fit.at_bound else np.inf
 
 
 def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: float, beat: float | None = None):
@@ -948,8 +950,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         top_slant = stat_slant + 5.0
 
         def free(a, b):
-            e, alb = fit(a, b)
-            return e if alb < bound and a <= top_slant else np.inf
+            return _free_misfit(fit, a, b) if a <= top_slant else np.inf
 
         tilts = t + np.arange(0.0, 180.0, TILT_SCAN_STEP_DEG)
         errs = [free(stat_slant, c) for c in tilts]
