@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 from scipy import ndimage
+from haptex_compile.shading_prior import along_light_power
 
 __all__ = [
     "Light",
@@ -110,6 +111,12 @@ LOWFREQ_CYCLES = 1.0
 # flattens those caps to errors of 0.94-0.98 (without it 0.01-0.06).
 LOWFREQ_CHECK_SIDE = 128
 LOWFREQ_REJECT_RATIO = 4.0
+# The prior is tightened on the waves of up to SPECTRAL_PRIOR_CYCLES cycles per image side
+# across the light that the image's waves along it show to have little power (a weave has
+# none below its own frequency): a Gaussian prior of that power over noise of variance
+# SPECTRAL_PRIOR_WEIGHT x albedo² (see shading_prior).
+SPECTRAL_PRIOR_CYCLES = 6
+SPECTRAL_PRIOR_WEIGHT = 3e-4
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
 # Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
@@ -1032,12 +1039,14 @@ def _embed(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool):
+def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool, light: Light | None = None,
+                  albedo: float = 0.0):
     """The periodic domain the variational solver works on.
 
     A tile is its own domain. A plain image is embedded in a larger periodic domain whose
-    margin carries no data (its edges are free), with the flat-on-average prior. `censored`
-    is :func:`_censored_pixels` of the image.
+    margin carries no data (its edges are free), with the flat-on-average prior, tightened
+    where the image's waves along `light` (with `albedo`) show no long-wave power
+    (:mod:`haptex_compile.shading_prior`). `censored` is :func:`_censored_pixels` of the image.
 
     Returns
     -------
@@ -1072,6 +1081,11 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool):
             data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES,
             lowfreq_check_level=check_level, lowfreq_reject_ratio=LOWFREQ_REJECT_RATIO,
         )
+        if light is not None and light.slant_deg >= MIN_SLANT_DEG:
+            power = along_light_power(np.where(valid, img, fill), light.vector, albedo,
+                                      max_cycles=SPECTRAL_PRIOR_CYCLES)
+            if power is not None:
+                kwargs.update(lowfreq_power=power, lowfreq_power_weight=SPECTRAL_PRIOR_WEIGHT)
     if CENSORED:
         kwargs.update(dark=dark, bright=bright)
     return np.where(dom_w, dom_img, fill), dom_w, kwargs
@@ -1246,7 +1260,7 @@ def shape_from_shading(
             " carry no information and cast shadows are not modelled; expect large errors"
         )
     rows, cols = img.shape
-    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic)
+    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic, light, albedo)
     if z0 is None and light.slant_deg < MIN_SLANT_DEG:
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
     kwargs = {}

@@ -57,6 +57,7 @@ import scipy.fft as sfft
 import cv2
 
 from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
+from haptex_compile.shading_prior import spectral_symbol
 
 _F = np.float32
 # Coarse levels: weight of the squared slope across the light in R's normalisation,
@@ -282,7 +283,7 @@ class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False,
-                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True):
+                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
@@ -344,27 +345,32 @@ class _Problem:
             lf = mu * phi * across
             # The penalty lives on a few waves (phi is below LOWFREQ_SUPPORT of its peak
             # beyond about 4 cycles per data region): transform along x, keep those columns,
-            # and transform them along y by a small matrix product, rather than an FFT pair
-            # over the level (1125 px: 5.6 -> 2.3 ms a call). Not a matrix product over the
-            # whole level: OpenBLAS's threads then spin and slow the FFTs that follow 2 x.
+            # and transform only them along y, rather than an FFT pair over the level (1125 px:
+            # 5.6 -> 2.3 ms a call). Not matrix products: OpenBLAS's threads then spin and slow
+            # the FFTs that follow (2 x over a whole level; with the spectral prior's 15 x 8
+            # waves, 1 Mpx plain image 2.2 -> 2.8 s).
             keep = lf > LOWFREQ_SUPPORT * float(lf.max())
+            if lowfreq_spectral is not None:
+                # The image's own long-wave power tightens the prior (shading_prior).
+                spectral = spectral_symbol(wx, wy, self.light, **lowfreq_spectral)
+                lf = np.maximum(np.where(keep, lf, 0.0), spectral)
+                keep |= spectral > 0
             self._lf_ky = np.flatnonzero(keep.any(axis=1))
             self._lf_kx = np.flatnonzero(keep.any(axis=0))
             # The preconditioner sees the kept waves; the operator, the rectangle of rows and
             # columns that holds them (the rest of it below LOWFREQ_SUPPORT as well).
             self.lf = np.where(keep, lf, 0.0).astype(_F)
-            ang_y = 2 * np.pi * np.outer(self._lf_ky, np.arange(rows)) / rows
-            self._lf_ey = np.exp(-1j * ang_y).astype(np.complex64)  # (ny, rows)
-            self._lf_sym = lf[np.ix_(self._lf_ky, self._lf_kx)].astype(_F)
+            self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
+            self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
         waves that holds the kept ones)."""
         cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
-        spec = self._lf_ey @ cols_x  # the kept waves' 2-D spectrum, (ny, nx)
+        spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
         spec *= self._lf_sym
         back = np.zeros((v.shape[0], v.shape[1] // 2 + 1), np.complex64)
-        back[:, self._lf_kx] = self._lf_ey.conj().T @ spec / v.shape[0]
+        back[:, self._lf_kx] = sfft.ifft(spec, axis=0, overwrite_x=True)
         out = sfft.irfft(back, n=v.shape[1], axis=1, workers=self.workers, overwrite_x=True)
         return out.astype(_F, copy=False)
 
@@ -828,6 +834,8 @@ def solve_variational(
     data_shape: tuple[int, int] | None = None,
     lowfreq_weight: float = 0.0,
     lowfreq_cycles: float = 1.0,
+    lowfreq_power: np.ndarray | None = None,
+    lowfreq_power_weight: float = 0.0,
     fit_min_level: int = 0,
     gradient_data: bool = False,
     bound_max_level: int = 0,
@@ -910,6 +918,13 @@ def solve_variational(
         slopes across the light are penalised (along it, the linear shading term fixes them).
     lowfreq_cycles : float
         Cut-off of that penalty: a Gaussian low-pass at this many cycles per data region.
+    lowfreq_power, lowfreq_power_weight : ndarray or None, float
+        With `lowfreq_weight`: the height's expected power per radial frequency (px², at
+        ``c = 0 .. len - 1`` cycles per data region's longer side; see
+        :func:`haptex_compile.shading_prior.along_light_power`) and the noise variance over
+        albedo² of a Gaussian prior on the waves across the light with that power
+        (:func:`haptex_compile.shading_prior.spectral_symbol`); the penalty on each of those
+        waves is the larger of the two.
     albedo_projection : bool
         Eliminate the albedo from each Gauss-Newton step by variable projection (where it
         is fitted and not held at a bound): the step solves for the height with the albedo
@@ -1020,13 +1035,17 @@ def solve_variational(
         if not censored_data:
             w = _uncensored_weight(w, d, b)
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
-        lowfreq = None
+        lowfreq = spectral = None
         if prior_weight > 0 and data_shape is not None:
-            side = max(data_shape) * img.shape[1] / image.shape[1]
+            scale = img.shape[1] / image.shape[1]
+            side = max(data_shape) * scale
             lowfreq = (prior_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
+            if lowfreq_power is not None and lowfreq_power_weight > 0:
+                spectral = dict(albedo=albedo, side_px=side, data_pixels=data_shape[0] * data_shape[1] * scale * scale,
+                                power=lowfreq_power, weight=lowfreq_power_weight)
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
-            bound_noise_sigmas, albedo_bound=level <= bound_max_level,
+            bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
