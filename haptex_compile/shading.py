@@ -119,6 +119,8 @@ SPECTRAL_PRIOR_CYCLES = 6
 SPECTRAL_PRIOR_WEIGHT = 3e-4
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
+# The margin around a plain image, as a fraction of its longer side (at least 8 px).
+PLAIN_MARGIN = 0.08
 # Black and saturated pixels enter the solve as one-sided bounds (see solve_variational).
 CENSORED = True
 # Settings of solve_variational for method "default" (its own defaults are the light search's,
@@ -148,6 +150,11 @@ CENSORED = True
 DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=3e-4, albedo_projection=True,
                       projection_levels=(1,), projection_max_ratio=0.1, bound_noise_sigmas=3.09,
                       censored_data=False, subspace_steps=2)
+# Plain images: a level stops once a full step gains less than 0.1 %. Their half-resolution
+# level gains 0.05-0.1 % a step for all its 8 steps (a tile's converges in 4), for no
+# accuracy: bench_shading's plain-image table (light given, plain renderings and crops)
+# summed 4.58 / 5.38 -> 4.61 / 5.38; random bumps of 1 Mpx 2.14-2.24 -> 1.62-1.72 s/Mpx.
+PLAIN_SOLVER = dict(gn_rtol=1e-3)
 # Method "accurate": more steps and iterations everywhere, converged solves, the albedo
 # projected on every level without sub-pixel roughness (Brownian surfaces, 7 seeds x 2 tilts
 # at 15°: mean a320 error -13 % -> -9 % with the ratio limit). Levels stop once a full step
@@ -1062,11 +1069,16 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool, 
     if periodic:
         dom_img, dom_w = img, valid
     else:
-        pad = max(8, int(0.08 * max(rows, cols)))
+        pad = max(8, int(PLAIN_MARGIN * max(rows, cols)))
         # Sizes that halve to fast FFT sizes (factors 2, 3 and 5 only) down to about
         # FAST_HALF_PX: 1024 px would get 1125, which halves to 562 = 2 x 281 (a prime) and
         # that level's steps took 3 x as long. Smaller levels cost little either way, and
-        # a wider margin than needed loosens the solve (a 128 px sphere cap: 0.025 -> 0.109).
+        # a wider margin than needed loosens the solve (a 128 px sphere cap: 0.025 -> 0.109;
+        # bench_shading's plain images with PLAIN_MARGIN 0.15: sphere caps 0.01-0.08 ->
+        # 0.02-0.14, crops of the plain weave 0.09-0.28 -> 0.06-0.18; the thin plate's weight
+        # in the margin at 0.1 x: sphere caps up to 0.28). The margin's thin plate joins
+        # opposite edges, which holds a scene's level ground and bends a texture's edges;
+        # the final data misfit picks the better margin in 21 of 24 cases, at twice the time.
         shape = []
         for n in (rows + pad, cols + pad):
             unit = 2 ** max(0, int(np.log2(n / FAST_HALF_PX)))
@@ -1131,7 +1143,8 @@ def shape_from_shading(
         ``"default"``: Gauss-Newton on the exact Lambertian energy with a small thin-plate
         term, coarse to fine, FFT-preconditioned conjugate gradients, albedo fitted by least
         squares and bounded below by the brightest pixels (see
-        :mod:`haptex_compile.shading_variational`; settings ``DEFAULT_SOLVER``);
+        :mod:`haptex_compile.shading_variational`; settings ``DEFAULT_SOLVER``, for plain
+        images with ``PLAIN_SOLVER``'s);
         ``"accurate"``: the same with more iterations on every level
         (``ACCURATE_SOLVER``), about 3 x slower (measured on the bench surfaces, light
         given, slants 15-60°: worst normalised height error of random bumps 0.02 instead of
@@ -1144,7 +1157,9 @@ def shape_from_shading(
         Otherwise the image is embedded in a larger periodic domain whose margin carries no
         data, so its edges are free, and a weak prior that the fabric lies flat on average
         (no slope across the light at wavelengths longer than the image) removes the ramps
-        that shading cannot see. Periodic tiles are much better posed: a strip along the light
+        that shading cannot see; it is tightened on the longest waves across the light where
+        the image's waves along the light show little power (a weave: see
+        :mod:`haptex_compile.shading_prior`). Periodic tiles are much better posed: a strip along the light
         closes on itself, so its height offset is fixed (measured on 256 px random bumps at
         45°: 0.07 periodic, 0.30 as a plain image).
     mask : ndarray of bool, optional
@@ -1271,7 +1286,7 @@ def shape_from_shading(
     if method == "accurate":
         kwargs.update(ACCURATE_SOLVER)
     elif z0 is None:
-        kwargs.update(DEFAULT_SOLVER)
+        kwargs.update(DEFAULT_SOLVER if periodic else {**DEFAULT_SOLVER, **PLAIN_SOLVER})
     kwargs.update(domain_kwargs)
     albedo_start = albedo
     weight = dom_w.astype(np.float32)
