@@ -1166,12 +1166,13 @@ def shape_from_shading(
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
     weave_basis_px : array_like, optional
-        The lattice of a periodic tile's relief (columns t1, t2 in pixels, a reduced basis),
-        when known (a weave photo's tile). Light nearly along one of its weave directions
-        (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and solved from
-        more starts (see :func:`_start_from_cell`). Without it, light along the tile's axes
-        and diagonals is; with it, only when the light is also near a weave direction (a
-        weave's window is cut to repeat the lattice, and its own axes mean nothing).
+        The lattice of the image's relief (columns t1, t2 in pixels, a reduced basis), when
+        known (a weave photo's tile or image). Light nearly along one of its weave directions
+        (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and, on a
+        periodic tile, solved from more starts (see :func:`_start_from_cell`). Without it,
+        light along a tile's axes and diagonals is; with it, only when the light is also near
+        a weave direction (a weave's window is cut to repeat the lattice, and its own axes
+        mean nothing).
 
     Returns
     -------
@@ -1230,10 +1231,11 @@ def shape_from_shading(
         )
         used_method = f"{method}+brightness-start"
     along_weave = None
-    if periodic and weave_basis_px is not None and light.slant_deg >= MIN_SLANT_DEG:
+    if weave_basis_px is not None and light.slant_deg >= MIN_SLANT_DEG:
         visibility, weave_tilt = weave_visibility(light, weave_basis_px)
         if visibility < WEAVE_VISIBILITY_MIN:
-            along_weave = (visibility, weave_tilt)
+            # The more starts run on a tile only (a small periodic window of its lattice).
+            along_weave = (visibility, weave_tilt) if periodic else None
             if np.sin(np.deg2rad(light.slant_deg)) < WEAVE_VISIBILITY_MIN:
                 # Every direction is below the threshold: the cause is the slant, not the tilt.
                 where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly overhead:"
@@ -1243,13 +1245,18 @@ def shape_from_shading(
                 where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
                          f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between"
                          f" them) = {visibility:.3f} < {WEAVE_VISIBILITY_MIN:g}")
+            if periodic:
+                remedy = ("solved from 2-3 more starts at full resolution (on a small"
+                          " periodic window of the lattice, the best polished on the tile), the lowest energy kept, and"
+                          " they may still come back wrong (bench: of 54 such lights on plain weaves and"
+                          " smooth cells, 7 gave height errors above 0.1, up to 0.74, against 25 from the pyramid alone)")
+            else:
+                remedy = ("the image is not a periodic tile, so it is solved from the pyramid alone, and they may"
+                          " come back wrong (bench/bench_photo.py's coarse plain weave lit 7° off t1 - t2 at slant 30°:"
+                          " height error 0.23, against 0.01-0.05 for its other lights)")
             warnings.append(
-                f"{where}, so the profiles across that direction (the yarns'"
-                " cross-sections) barely shade; solved from 2-3 more starts at full resolution (on a small"
-                " periodic window of the lattice, the best polished on the tile), the lowest energy kept, and"
-                " they may still come back wrong (bench: of 54 such lights on plain weaves and"
-                " smooth cells, 7 gave height errors above 0.1, up to 0.74, against 25 from the pyramid alone);"
-                " light the fabric so that this product is at least"
+                f"{where}, so the profiles across that direction (the yarns' cross-sections) barely shade;"
+                f" {remedy}; light the fabric so that this product is at least"
                 f" {WEAVE_VISIBILITY_MIN:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)"
             )
     # A weave's window: its axes and diagonals matter only where they run along a weave

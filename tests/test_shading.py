@@ -1214,6 +1214,26 @@ def test_near_overhead_light_is_warned_of_as_such_not_as_along_a_weave_direction
         assert any("nearly along the weave direction" in w for w in res.warnings) != overhead
 
 
+def test_a_plain_image_lit_along_a_weave_direction_is_warned_without_more_starts(monkeypatch):
+    # A coarse lattice's photo is solved whole, as a plain image: light 2° off t1 at slant 30°
+    # (sin 30° sin 2° = 0.017) is warned of as on a tile, but the full-resolution starts need
+    # a periodic window and do not run; 22.5° off t1 and t1 + t2 (0.19) is not warned of.
+    from haptex_compile.synth_images import weave_image
+
+    truth = 40.0 * weave_image((96, 96), (16.0, 0.0), (0.0, 16.0), kind="plain")
+    basis = np.diag([16.0, 16.0])
+    ran = []
+    monkeypatch.setattr(shading, "_start_from_cell", lambda *a: ran.append(1))
+    monkeypatch.setattr(shading, "_fine_starts", lambda *a: ran.append(1))
+    for light, warned in ((Light(30.0, 2.0), True), (Light(30.0, 22.5), False)):
+        img = render_lambertian(truth, PX, light, 0.8)
+        res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False, weave_basis_px=basis)
+        along = [w for w in res.warnings if "nearly along the weave direction" in w]
+        assert len(along) == warned
+        assert all("not a periodic tile" in w for w in along)
+    assert not ran
+
+
 def test_an_estimated_slant_at_the_searchs_lowest_is_noted():
     # The search's slants start at MIN_SLANT_DEG: an estimate there is an edge, not a minimum.
     low = Light(shading.MIN_SLANT_DEG, 200.0, 2.0, 3.0)
