@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 from scipy import ndimage
+
 from haptex_compile.shading_prior import along_light_power
 
 __all__ = [
@@ -1046,8 +1047,8 @@ def _embed(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool, light: Light | None = None,
-                  albedo: float = 0.0):
+def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
+                  light: Light | None = None, albedo: float = 0.0):
     """The periodic domain the variational solver works on.
 
     A tile is its own domain. A plain image is embedded in a larger periodic domain whose
@@ -1159,9 +1160,9 @@ def shape_from_shading(
         (no slope across the light at wavelengths longer than the image) removes the ramps
         that shading cannot see; it is tightened on the longest waves across the light where
         the image's waves along the light show little power (a weave: see
-        :mod:`haptex_compile.shading_prior`). Periodic tiles are much better posed: a strip along the light
-        closes on itself, so its height offset is fixed (measured on 256 px random bumps at
-        45°: 0.07 periodic, 0.30 as a plain image).
+        :mod:`haptex_compile.shading_prior`). Periodic tiles are much better posed: a strip
+        along the light closes on itself, so its height offset is fixed (measured on 256 px
+        random bumps at 45°: 0.07 periodic, 0.24 as a plain image).
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.

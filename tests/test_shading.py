@@ -550,12 +550,15 @@ def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
     from haptex_compile.shading_variational import _Problem
 
     rng = np.random.default_rng(3)
-    for rows, cols in ((144, 144), (145, 77), (96, 160)):
+    # With the spectral prior too (shading_prior): more waves, up to 6 cycles.
+    spectral = dict(albedo=0.8, side_px=130.0, data_pixels=130.0 * 70.0, weight=3e-4,
+                    power=np.array([np.nan, 1.0, 1e-3, 1e-4, 1e-4, 1e-4, 1e-2]))
+    for (rows, cols), extra in (((144, 144), None), ((145, 77), None), ((96, 160), None), ((145, 77), spectral)):
         img = rng.random((rows, cols)).astype(np.float32)
         prob = _Problem(img, np.ones_like(img), Light(40.0, 200.0).vector, 1e-4, 1,
-                        (0.64, 2 * np.pi / (0.9 * max(rows, cols))))
+                        (0.64, 2 * np.pi / (0.9 * max(rows, cols))), lowfreq_spectral=extra)
         kept = np.count_nonzero(prob.lf)
-        assert 0 < kept < 0.02 * prob.lf.size  # a few waves
+        assert 0 < kept < (0.1 if extra else 0.02) * prob.lf.size  # a few waves
         v = rng.standard_normal((rows, cols)).astype(np.float32)
         want = sfft.irfft2(sfft.rfft2(v) * prob.lf, s=(rows, cols))
         assert np.abs(prob.lowfreq(v) - want).max() <= 1e-5 * np.abs(want).max()

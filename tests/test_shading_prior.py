@@ -22,7 +22,8 @@ def _tone_image(n: int, cycles: int, amplitude_px: float, light: Light, across: 
     return render_lambertian(z * PX, PX, light, 0.8, periodic=False)
 
 
-def _windowed_cone_power(field: np.ndarray, light: Light, ring: int, cone_deg: float = 30.0) -> np.ndarray:
+def _windowed_cone_power(field: np.ndarray, light: Light, ring: int,
+                         cone_deg: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
     """Squared amplitudes of the Hann-windowed `field`'s waves at `ring` cycles per side
     within `cone_deg` of the light's azimuth, and the waves' (l . w)²."""
     n = field.shape[0]
