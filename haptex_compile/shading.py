@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.fft as sfft
@@ -758,7 +759,18 @@ def light_misfit(image, light: Light, *, mask=None) -> tuple[float, bool]:
     return float(misfit), bool(albedo >= fit.at_bound)
 
 
-def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
+class _LightFit(NamedTuple):
+    """A light search's result (see :func:`_refine_light`)."""
+
+    slant: float
+    tilt: float
+    slant_sd: float
+    tilt_sd: float
+    albedo: float
+    at_bound: bool
+
+
+def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX) -> _LightFit:
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
     For each candidate light the default solver fits a surface to a reduced image (at most
@@ -804,8 +816,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
 
     Returns
     -------
-    (slant, tilt, slant_sd, tilt_sd, albedo, at_bound)
-        Degrees, the albedo fitted at the chosen light, and whether that albedo is within
+    _LightFit
+        (slant, tilt, slant_sd, tilt_sd, albedo, at_bound): degrees, the albedo fitted at
+        the chosen light, and whether that albedo is within
         ``1 - AT_BOUND_FRACTION`` of its bound. The uncertainties are the change
         that doubles the misfit (parabola through ±1°), at least 1° for the slant, combined
         in quadrature with ``CAP_BIAS_DEG`` for the bound's possible bias (too low a slant when
@@ -840,12 +853,13 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX):
     final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
     knee, coarse_misfit, found = _search_light(coarse, final, lossy, float(slant), float(tilt))
-    swept = _swept_tilt(coarse, knee, float(tilt), found[1])
+    swept = _swept_tilt(coarse, knee, float(tilt), found.tilt)
     if swept is None:
         return found
     _, _, other = _search_light(coarse, final, lossy, float(slant), swept, beat=SECOND_SEARCH_GAIN * coarse_misfit)
     # The other search's light is kept where it fits better with the albedo free.
-    if other is not None and not other[5] and final(other[0], other[1])[0] < final(found[0], found[1])[0]:
+    if (other is not None and not other.at_bound
+            and final(other.slant, other.tilt)[0] < final(found.slant, found.tilt)[0]):
         return other
     return found
 
@@ -878,13 +892,14 @@ def _free_misfit(fit, slant: float, tilt: float) -> float:
     return misfit if albedo < fit.at_bound else np.inf
 
 
-def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: float, beat: float | None = None):
+def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: float,
+                  beat: float | None = None) -> tuple[float, float, _LightFit | None]:
     """One search of :func:`_refine_light` from the statistical `slant` and `tilt`, with the
     misfit functions `coarse` (reduced image) and `final`; `reduction_lossy`: the reduced image
     lost more than ``MAX_REDUCTION_LOSS`` of the variance. Returns the first knee's slant, the
-    reduced image's misfit at the end of its stage, and ``(slant, tilt, slant_sd, tilt_sd,
-    albedo, at_bound)``; that is None if `beat` is given and the reduced image's misfit is
-    not below it (the final stage is then skipped)."""
+    reduced image's misfit at the end of its stage, and the search's :class:`_LightFit`;
+    that is None if `beat` is given and the reduced image's misfit is not below it (the
+    final stage is then skipped)."""
     stat_slant = float(slant)
 
     def polish_tilt(e_of, s, t, step, stop):
@@ -999,7 +1014,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         at_bound = True
         slant_sd = max(slant_sd, plateau[0] - s)
         tilt_sd = max(tilt_sd, tilt_axis_difference_deg(plateau[1], t))
-    return knee, coarse_misfit, (s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound))
+    return knee, coarse_misfit, _LightFit(s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound))
 
 
 # --------------------------------------------------------------------------------------------
