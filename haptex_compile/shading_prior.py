@@ -87,7 +87,7 @@ def along_light_power(image: np.ndarray, light_vec, albedo: float, *, max_cycles
     return power
 
 
-def spectral_symbol(wx: np.ndarray, wy: np.ndarray, light_vec, albedo: float, *, side_px: float,
+def spectral_symbol(wx: np.ndarray, wy: np.ndarray, across: np.ndarray, albedo: float, *, side_px: float,
                     data_pixels: float, power: np.ndarray, weight: float, floor: float = FLOOR,
                     cap: float = CAP) -> np.ndarray:
     """The prior's symbol on one pyramid level: ``weight albedo² sin²θ / (N a²(c))`` on the
@@ -103,8 +103,10 @@ def spectral_symbol(wx: np.ndarray, wy: np.ndarray, light_vec, albedo: float, *,
     ----------
     wx, wy : ndarray
         The level's angular frequencies (radians per pixel), broadcastable (rfft layout).
-    light_vec : array_like
-        Unit light vector.
+    across : ndarray
+        The squared slope across the light of each wave, in the solver's central differences
+        (the flat-on-average prior's factor: ``(c · sin ω)²`` with ``c`` the unit direction
+        across the light, ``|sin ω|²`` for overhead light).
     albedo : float
     side_px : float
         The data region's longer side on this level, in pixels.
@@ -119,7 +121,6 @@ def spectral_symbol(wx: np.ndarray, wy: np.ndarray, light_vec, albedo: float, *,
     cap : float
         The symbol never exceeds ``cap albedo² sin²θ |ω|²`` (conditioning in float32).
     """
-    lx, ly = float(light_vec[0]), float(light_vec[1])
     cycles = np.hypot(wx, wy) * side_px / (2 * np.pi)
     c = np.arange(len(power))
     known = np.isfinite(power) & (c > 0)
@@ -127,14 +128,8 @@ def spectral_symbol(wx: np.ndarray, wy: np.ndarray, light_vec, albedo: float, *,
         return np.zeros(np.broadcast_shapes(wx.shape, wy.shape))
     table = np.interp(cycles, c[known], power[known])
     table = np.maximum(table, floor * float(np.max(power[known])))
-    sx, sy = np.sin(wx), np.sin(wy)
-    s2 = sx * sx + sy * sy
-    n = float(np.hypot(lx, ly))
-    if n < 1e-9:
-        across2 = s2
-    else:
-        across2 = ((-ly * sx + lx * sy) / n) ** 2
-    frac = np.divide(across2, s2, out=np.zeros_like(s2), where=s2 > 0)
+    s2 = np.sin(wx) ** 2 + np.sin(wy) ** 2
+    frac = np.divide(across, s2, out=np.zeros(np.broadcast_shapes(across.shape, s2.shape)), where=s2 > 0)
     limit = cap * albedo * albedo * s2 if np.isfinite(cap) else np.inf
     sym = frac * np.minimum(weight * albedo * albedo / (data_pixels * table), limit)
     return np.where((cycles >= 0.5) & (cycles < len(power) - 0.5), sym, 0.0)

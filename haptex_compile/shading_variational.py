@@ -352,7 +352,7 @@ class _Problem:
             keep = lf > LOWFREQ_SUPPORT * float(lf.max())
             if lowfreq_spectral is not None:
                 # The image's own long-wave power tightens the prior (shading_prior).
-                spectral = spectral_symbol(wx, wy, self.light, **lowfreq_spectral)
+                spectral = spectral_symbol(wx, wy, across, **lowfreq_spectral)
                 lf = np.maximum(np.where(keep, lf, 0.0), spectral)
                 keep |= spectral > 0
             self._lf_ky = np.flatnonzero(keep.any(axis=1))

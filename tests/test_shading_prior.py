@@ -9,6 +9,7 @@ from haptex_compile import known_surfaces as ts
 from haptex_compile import shading
 from haptex_compile.shading import Light, normalised_height_error, render_lambertian, shape_from_shading
 from haptex_compile.shading_prior import along_light_power, spectral_symbol
+from haptex_compile.shading_variational import _across
 
 PX = 20.0
 
@@ -88,8 +89,10 @@ def test_spectral_symbol_holds_waves_across_the_light_in_proportion_to_their_mis
     rows, cols = 64, 64
     wy = 2 * np.pi * np.fft.fftfreq(rows)[:, None]
     wx = 2 * np.pi * np.fft.rfftfreq(cols)[None, :]
+    c = _across(light.vector)  # the solver's direction across the light
+    across = (c[0] * np.sin(wx) + c[1] * np.sin(wy)) ** 2
     power = np.array([np.nan, 1.0, 1.0, 1e-2, 1e-2, 1.0])
-    sym = spectral_symbol(wx, wy, light.vector, 0.8, side_px=64.0, data_pixels=4096.0, power=power,
+    sym = spectral_symbol(wx, wy, across, 0.8, side_px=64.0, data_pixels=4096.0, power=power,
                           weight=1e-3, cap=np.inf)
     # Waves along the light (ky = 0) are the data's: no prior. Across it (kx = 0): the
     # Gaussian prior's weight albedo² / (N power), 100 x larger where the power is 100 x
@@ -99,7 +102,7 @@ def test_spectral_symbol_holds_waves_across_the_light_in_proportion_to_their_mis
     assert sym[2, 0] == pytest.approx(want, rel=1e-6)
     assert sym[3, 0] == pytest.approx(100 * want, rel=1e-6)
     assert sym[6, 0] == 0 and sym[-2, 0] == pytest.approx(want, rel=1e-6)
-    capped = spectral_symbol(wx, wy, light.vector, 0.8, side_px=64.0, data_pixels=4096.0, power=power,
+    capped = spectral_symbol(wx, wy, across, 0.8, side_px=64.0, data_pixels=4096.0, power=power,
                              weight=1e-3, cap=1e-6)
     assert capped[3, 0] == pytest.approx(1e-6 * 0.64 * np.sin(wy[3, 0]) ** 2, rel=1e-6)
 
