@@ -283,7 +283,8 @@ class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False,
-                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None):
+                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None,
+                 lowfreq_plane=0.0):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
@@ -362,17 +363,38 @@ class _Problem:
             self.lf = np.where(keep, lf, 0.0).astype(_F)
             self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
             self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
+            # The slopes of the least-squares plane through the data, <a_x, z> and <a_y, z>
+            # (data-weighted): a tilt along the light is traded against the albedo, and on the
+            # periodic domain it costs only its return in the margin, which the prior's few
+            # long waves hardly see. Penalised as lowfreq_plane x mu x (data weight) x
+            # |slope|² / 2: two rank-one terms of this operator. (Not the mean of the
+            # differences: that telescopes to the edge pixels, which then bend to meet it.)
+            self._plane = None
+            if lowfreq_plane > 0:
+                wsum = float(self.w.sum())
+                if wsum > 0:
+                    yy, xx = np.mgrid[:rows, :cols]
+                    ramps = []
+                    for u in (xx, yy):
+                        du = (u - float(np.sum(self.w * u)) / wsum) * self.w
+                        ramps.append((du / float(np.sum(du * u))).astype(_F))
+                    self._plane = (*ramps, lowfreq_plane * mu * wsum)
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
-        waves that holds the kept ones)."""
+        waves that holds the kept ones, and the plane's rank-one terms)."""
         cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
         spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
         spec *= self._lf_sym
         back = np.zeros((v.shape[0], v.shape[1] // 2 + 1), np.complex64)
         back[:, self._lf_kx] = sfft.ifft(spec, axis=0, overwrite_x=True)
         out = sfft.irfft(back, n=v.shape[1], axis=1, workers=self.workers, overwrite_x=True)
-        return out.astype(_F, copy=False)
+        out = out.astype(_F, copy=False)
+        if self._plane is not None:
+            ax, ay, weight = self._plane
+            out += ax * _F(weight * float(np.vdot(ax, v)))
+            out += ay * _F(weight * float(np.vdot(ay, v)))
+        return out
 
     def gradient_data_energy(self, res):
         """Data energy of gradient data (intensity data: see :meth:`energy`)."""
@@ -836,6 +858,7 @@ def solve_variational(
     lowfreq_cycles: float = 1.0,
     lowfreq_power: np.ndarray | None = None,
     lowfreq_power_weight: float = 0.0,
+    lowfreq_plane_weight: float = 0.0,
     fit_min_level: int = 0,
     gradient_data: bool = False,
     bound_max_level: int = 0,
@@ -925,6 +948,10 @@ def solve_variational(
         albedo² of a Gaussian prior on the waves across the light with that power
         (:func:`haptex_compile.shading_prior.spectral_symbol`); the penalty on each of those
         waves is the larger of the two.
+    lowfreq_plane_weight : float
+        With `lowfreq_weight`: also penalise the slopes (x and y) of the least-squares plane
+        through the data region, ``lowfreq_plane_weight x lowfreq_weight x albedo² x N x
+        |slope|² / 2`` on a level whose data weights sum to N (0 = off).
     albedo_projection : bool
         Eliminate the albedo from each Gauss-Newton step by variable projection (where it
         is fitted and not held at a bound): the step solves for the height with the albedo
@@ -1046,6 +1073,7 @@ def solve_variational(
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
+            lowfreq_plane=lowfreq_plane_weight if lowfreq is not None else 0.0,
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
