@@ -363,26 +363,34 @@ class _Problem:
             self.lf = np.where(keep, lf, 0.0).astype(_F)
             self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
             self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
-            # The slopes of the least-squares plane through the data, <a_x, z> and <a_y, z>
-            # (data-weighted): a tilt along the light is traded against the albedo, and on the
-            # periodic domain it costs only its return in the margin, which the prior's few
-            # long waves hardly see. Penalised as lowfreq_plane x mu x (data weight) x
-            # |slope|² / 2: two rank-one terms of this operator. (Not the mean of the
-            # differences: that telescopes to the edge pixels, which then bend to meet it.)
-            self._plane = None
+            # The slopes of the least-squares plane through the data (data-weighted): a tilt
+            # along the light is traded against the albedo, and on the periodic domain it
+            # costs only its return in the margin, which the prior's few long waves hardly
+            # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
+            # term of this operator. (Not the mean of the differences: that telescopes to the
+            # edge pixels, which then bend to meet it.)
+            self._plane = self._box = None
             if lowfreq_plane > 0:
                 wsum = float(self.w.sum())
                 if wsum > 0:
+                    # The plane's slopes are M^-1 b(z), b = (<ux, z>, <uy, z>) with u the
+                    # weighted, centred coordinates and M their moments; the penalty's
+                    # operator is c u M^-2 b.
                     yy, xx = np.mgrid[:rows, :cols]
-                    ramps = []
-                    for u in (xx, yy):
-                        du = (u - float(np.sum(self.w * u)) / wsum) * self.w
-                        ramps.append((du / float(np.sum(du * u))).astype(_F))
-                    self._plane = (*ramps, lowfreq_plane * mu * wsum)
+                    ramps = [((u - float(np.sum(self.w * u)) / wsum) * self.w) for u in (xx, yy)]
+                    moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
+                    inv = np.linalg.inv(moments)
+                    self._plane = (*(a.astype(_F) for a in ramps), lowfreq_plane * mu * wsum * inv @ inv)
+                    # Data weights of 1 on a top-left box and 0 elsewhere (an unmasked plain
+                    # image): the ramps are a row and a column there, applied by sums over the
+                    # box (1152 px level: 5.9 -> 3.6 ms a call, 2.3 without the plane).
+                    r1, c1 = (int(np.count_nonzero(self.w.any(axis=k))) for k in (1, 0))
+                    if np.all(self.w[:r1, :c1] == 1) and wsum == r1 * c1:
+                        self._box = (r1, c1, self._plane[0][0, :c1].copy(), self._plane[1][:r1, 0].copy())
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
-        waves that holds the kept ones, and the plane's rank-one terms)."""
+        waves that holds the kept ones, and the plane's rank-two term)."""
         cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
         spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
         spec *= self._lf_sym
@@ -390,10 +398,18 @@ class _Problem:
         back[:, self._lf_kx] = sfft.ifft(spec, axis=0, overwrite_x=True)
         out = sfft.irfft(back, n=v.shape[1], axis=1, workers=self.workers, overwrite_x=True)
         out = out.astype(_F, copy=False)
-        if self._plane is not None:
-            ax, ay, weight = self._plane
-            out += ax * _F(weight * float(np.vdot(ax, v)))
-            out += ay * _F(weight * float(np.vdot(ay, v)))
+        if self._box is not None:
+            r1, c1, rx, ry = self._box
+            box = v[:r1, :c1]
+            gx, gy = self._plane[2] @ [float(np.dot(box.sum(axis=0), rx)), float(np.dot(box.sum(axis=1), ry))]
+            o = out[:r1, :c1]
+            o += (rx * _F(gx))[None, :]
+            o += (ry * _F(gy))[:, None]
+        elif self._plane is not None:
+            ux, uy, q = self._plane
+            gx, gy = q @ [float(np.vdot(ux, v)), float(np.vdot(uy, v))]
+            out += ux * _F(gx)
+            out += uy * _F(gy)
         return out
 
     def gradient_data_energy(self, res):

@@ -570,19 +570,23 @@ def test_the_prior_charges_a_tilt_of_the_data_region_and_nothing_in_the_margin()
     from haptex_compile.shading_variational import _Problem
 
     rows, cols, data = 150, 120, (110, 90)
-    w = np.zeros((rows, cols), np.float32)
-    w[: data[0], : data[1]] = 1.0
+    box = np.zeros((rows, cols), np.float32)
+    box[: data[0], : data[1]] = 1.0
+    holed = box.copy()
+    holed[40:50, 30:45] = 0.0  # masked pixels: the general path
     img = np.full((rows, cols), 0.5, np.float32)
     lowfreq = (0.64, 2 * np.pi / 110.0)
     yy, xx = np.mgrid[:rows, :cols].astype(np.float32)
     rng = np.random.default_rng(0)
-    margin_noise = np.where(w > 0, 0.0, rng.standard_normal((rows, cols))).astype(np.float32)
-    with_plane = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq, lowfreq_plane=0.1)
-    without = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq)
-    for sx, sy in ((0.3, 0.0), (0.0, -0.2), (0.1, 0.25)):
-        z = (sx * xx + sy * yy + 3.0) * w + margin_noise
-        extra = 0.5 * float(np.vdot(z, with_plane.lowfreq(z) - without.lowfreq(z)))
-        assert extra == pytest.approx(0.5 * 0.1 * 0.64 * w.sum() * (sx * sx + sy * sy), rel=1e-4)
+    for w in (box, holed):
+        off_data = np.where(w > 0, 0.0, rng.standard_normal((rows, cols))).astype(np.float32)
+        with_plane = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq, lowfreq_plane=0.1)
+        without = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq)
+        for sx, sy in ((0.3, 0.0), (0.0, -0.2), (0.1, 0.25)):
+            z = (sx * xx + sy * yy + 3.0) * w + off_data
+            extra = 0.5 * float(np.vdot(z, with_plane.lowfreq(z) - without.lowfreq(z)))
+            want = 0.5 * 0.1 * 0.64 * w.sum() * (sx * sx + sy * sy)
+            assert extra == pytest.approx(want, rel=1e-4)
 
 
 def test_a_plain_texture_lit_along_the_image_axis_is_not_tilted():
