@@ -488,8 +488,8 @@ def _downsample_to(img: np.ndarray, valid: np.ndarray, side: int):
 
     rows, cols = img.shape
     f = max(rows, cols) / side
-    if f <= 1:
-        return img.astype(np.float32), valid.astype(np.float32)
+    if f <= 1:  # unreduced: non-finite pixels (weight 0) must not reach the solver's sums
+        return np.where(np.isfinite(img), img, 0.0).astype(np.float32), valid.astype(np.float32)
     size = (max(int(round(cols / f)), 8), max(int(round(rows / f)), 8))
     w = valid.astype(np.float32)
     wi = cv2.resize(np.where(valid, img, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
@@ -509,8 +509,8 @@ def _block_average(img: np.ndarray, valid: np.ndarray, side: int):
     """
     rows, cols = img.shape
     f = int(np.ceil(max(rows, cols) / side))
-    if f <= 1:
-        return img.astype(np.float32), valid.astype(np.float32)
+    if f <= 1:  # as in _downsample_to
+        return np.where(np.isfinite(img), img, 0.0).astype(np.float32), valid.astype(np.float32)
     pad = ((0, (-rows) % f), (0, (-cols) % f))
     w = np.pad(valid.astype(np.float32), pad, mode="wrap")
     wi = np.pad(np.where(valid, img, 0).astype(np.float32), pad, mode="wrap")
@@ -748,7 +748,9 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
             # compared, and the coarse levels' damping depends on the light.
             z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS,
                                      subgrid_damping=0.0, **cens)
-            cache[key] = (energy(small, w, lv, a, z, lam=0.0, **cens), a)
+            e = energy(small, w, lv, a, z, lam=0.0, **cens)
+            # A failed solve ranks last (np.argmin would take a NaN for the minimum).
+            cache[key] = (e if np.isfinite(e) else np.inf, a)
         return cache[key]
 
     fit.at_bound = AT_BOUND_FRACTION * top / ALIGN_COS
@@ -925,7 +927,10 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     def polish_tilt(e_of, s, t, step, stop):
         while step >= stop:
             cands = [t - step, t, t + step]
-            t_new = cands[int(np.argmin([e_of(s, c) for c in cands]))]
+            errs = [e_of(s, c) for c in cands]
+            if not np.isfinite(min(errs)):
+                break  # no misfit to follow (the walk would never stop)
+            t_new = cands[int(np.argmin(errs))]
             if t_new == t:
                 step /= 2
             t = t_new
@@ -981,6 +986,8 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
             cands = [(s + i * step, t + j * step) for i in (-1, 0, 1) for j in (-1, 0, 1)]
             cands = [(a, b) for a, b in cands if MIN_SLANT_DEG <= a <= 85.0]
             errs = [e_fn(a, b) for a, b in cands]
+            if not np.isfinite(min(errs)):
+                break  # as in polish_tilt
             s_new, t_new = cands[int(np.argmin(errs))]
             if (s_new, t_new) == (s, t):
                 step /= 2

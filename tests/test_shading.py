@@ -589,6 +589,39 @@ def test_the_prior_charges_a_tilt_of_the_data_region_and_nothing_in_the_margin()
             assert extra == pytest.approx(want, rel=1e-4)
 
 
+def test_the_plane_term_is_left_out_where_the_data_span_no_area():
+    # A coarse level of a mostly shadowed or masked image may keep a few pixels in one
+    # column: no plane through them (its moments are singular), and no error.
+    from haptex_compile.shading_variational import _Problem
+
+    w = np.zeros((10, 9), np.float32)
+    w[2:7, 4] = 0.1
+    img = np.full(w.shape, 0.3, np.float32)
+    lowfreq = (0.64, 2 * np.pi / 9.0)
+    plane = _Problem(img, w, Light(60.0, 183.0).vector, 1e-3, 1, lowfreq, lowfreq_plane=0.1)
+    plain = _Problem(img, w, Light(60.0, 183.0).vector, 1e-3, 1, lowfreq)
+    v = np.random.default_rng(1).standard_normal(w.shape).astype(np.float32)
+    assert np.array_equal(plane.lowfreq(v), plain.lowfreq(v))
+
+
+def test_a_masked_plain_image_with_attached_shadows_is_solved():
+    # Grazing-ish light on a weave casts attached shadows; with masked holes as well, the
+    # coarsest levels keep almost no data (this crashed once on a singular plane fit).
+    tile = ts.woven_like((512, 512), PX)
+    crop = (slice(40, 340), slice(60, 330))
+    light = Light(60.0, 183.0)
+    img = render_lambertian(tile, PX, light, 0.8, periodic=True)[crop]
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    for _ in range(6):  # the sixth draw's holes (7.5 % of the pixels) reproduced the crash
+        seeds = rng.random(img.shape) < 0.002
+    mask = ~ndimage.binary_dilation(seeds, iterations=4)
+    res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False, mask=mask)
+    assert np.all(np.isfinite(res.height))
+    assert normalised_height_error(res.height, tile[crop]) < 0.2
+
+
 def test_a_plain_texture_lit_along_the_image_axis_is_not_tilted():
     # Light along x: a tilt of the image along the light dims it uniformly, which the albedo
     # undoes. A 371 x 355 crop of random bumps came back tilted (mean slope along the light
@@ -948,6 +981,19 @@ def test_nan_and_integer_images_are_handled(bumps128):
     res = shape_from_shading(img_nan, pixel_size_um=PX, light=light, periodic=True)
     assert np.all(np.isfinite(res.height))
     assert any("non-finite" in w for w in res.warnings)
+
+
+def test_the_light_is_estimated_on_a_small_image_with_nan_pixels():
+    # Images at most the light search's sizes are not reduced; their non-finite pixels
+    # (weight 0) made every misfit NaN and the search fail (IndexError).
+    h = ts.random_bumps((80, 80), PX, seed=3)
+    img = render_lambertian(h, PX, Light(45.0, 200.0), 0.8, periodic=True)
+    img[np.random.default_rng(0).random(img.shape) < 0.05] = np.nan
+    light, albedo = estimate_light(img)
+    assert abs(light.slant_deg - 45.0) <= 2.0
+    assert tilt_axis_difference_deg(light.tilt_deg, 200.0) <= 2.0
+    res = shape_from_shading(img, pixel_size_um=PX, periodic=True)
+    assert normalised_height_error(res.height, h) < 0.05
 
 
 def test_bad_parameters_raise_value_error(bumps128):
