@@ -607,12 +607,12 @@ def test_the_plane_term_is_left_out_where_the_data_span_no_area():
 def test_a_masked_plain_image_with_attached_shadows_is_solved():
     # Grazing-ish light on a weave casts attached shadows; with masked holes as well, the
     # coarsest levels keep almost no data (this crashed once on a singular plane fit).
+    from scipy import ndimage
+
     tile = ts.woven_like((512, 512), PX)
     crop = (slice(40, 340), slice(60, 330))
     light = Light(60.0, 183.0)
     img = render_lambertian(tile, PX, light, 0.8, periodic=True)[crop]
-    from scipy import ndimage
-
     rng = np.random.default_rng(0)
     for _ in range(6):  # the sixth draw's holes (7.5 % of the pixels) reproduced the crash
         seeds = rng.random(img.shape) < 0.002
