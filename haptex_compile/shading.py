@@ -488,8 +488,8 @@ def _downsample_to(img: np.ndarray, valid: np.ndarray, side: int):
 
     rows, cols = img.shape
     f = max(rows, cols) / side
-    if f <= 1:  # unreduced: non-finite pixels (weight 0) must not reach the solver's sums
-        return np.where(np.isfinite(img), img, 0.0).astype(np.float32), valid.astype(np.float32)
+    if f <= 1:
+        return img.astype(np.float32), valid.astype(np.float32)
     size = (max(int(round(cols / f)), 8), max(int(round(rows / f)), 8))
     w = valid.astype(np.float32)
     wi = cv2.resize(np.where(valid, img, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
@@ -509,8 +509,8 @@ def _block_average(img: np.ndarray, valid: np.ndarray, side: int):
     """
     rows, cols = img.shape
     f = int(np.ceil(max(rows, cols) / side))
-    if f <= 1:  # as in _downsample_to
-        return np.where(np.isfinite(img), img, 0.0).astype(np.float32), valid.astype(np.float32)
+    if f <= 1:
+        return img.astype(np.float32), valid.astype(np.float32)
     pad = ((0, (-rows) % f), (0, (-cols) % f))
     w = np.pad(valid.astype(np.float32), pad, mode="wrap")
     wi = np.pad(np.where(valid, img, 0).astype(np.float32), pad, mode="wrap")
@@ -726,8 +726,9 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
     # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
     # lights fit as well (measured on 256 px bumps: slant 15° estimated as 38°). Averaging
     # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
-    # bench).
-    small, w = reduce(img, valid, side_px)
+    # bench). An image small enough is not reduced: its non-finite pixels (weight 0) must not
+    # reach the solver's sums.
+    small, w = reduce(np.where(np.isfinite(img), img, 0.0), valid, side_px)
     # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
     # each reduced pixel that has too few valid ones.
     cens = {}
