@@ -279,6 +279,35 @@ def _across(light) -> tuple[float, float] | None:
     return (-ly / n, lx / n) if n > 1e-9 else None
 
 
+def _plane_penalty(w: np.ndarray, weight: float):
+    """The rank-two operator ``weight x sum(w) x |slope|² / 2`` on the slopes of the
+    least-squares plane through the data (weights `w`), as ``(plane, box)`` for
+    :meth:`_Problem.lowfreq`: ``plane = (ux, uy, q)``, the slopes being ``M^-1 (<ux, z>,
+    <uy, z>)`` with ``u`` the weighted, centred coordinates and ``M`` their moments, and
+    ``q = weight x sum(w) x M^-2``; `box` the same ramps as a row and a column where the data
+    weigh 1 on a top-left box and 0 elsewhere (an unmasked plain image: sums over the box,
+    1152 px level 5.9 -> 3.6 ms a call, 2.3 without the plane), else None. (None, None) where
+    the data span no area (a coarse level of a mostly masked or shadowed image: a few pixels
+    in one row or column), whose plane is undefined.
+    """
+    wsum = float(w.sum())
+    if wsum <= 0:
+        return None, None
+    yy, xx = np.mgrid[: w.shape[0], : w.shape[1]]
+    ramps = [((u - float(np.sum(w * u)) / wsum) * w) for u in (xx, yy)]
+    moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
+    eig = np.linalg.eigvalsh(moments)
+    if not eig[0] > 1e-6 * max(eig[1], 1e-30):
+        return None, None
+    inv = np.linalg.inv(moments)
+    plane = (*(a.astype(_F) for a in ramps), weight * wsum * inv @ inv)
+    r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
+    box = None
+    if np.all(w[:r1, :c1] == 1) and wsum == r1 * c1:
+        box = (r1, c1, plane[0][0, :c1].copy(), plane[1][:r1, 0].copy())
+    return plane, box
+
+
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
@@ -369,28 +398,9 @@ class _Problem:
             # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
-            self._plane = self._box = None
+            self._plane, self._box = None, None
             if lowfreq_plane > 0:
-                wsum = float(self.w.sum())
-                if wsum > 0:
-                    # The plane's slopes are M^-1 b(z), b = (<ux, z>, <uy, z>) with u the
-                    # weighted, centred coordinates and M their moments; the penalty's
-                    # operator is c u M^-2 b.
-                    yy, xx = np.mgrid[:rows, :cols]
-                    ramps = [((u - float(np.sum(self.w * u)) / wsum) * self.w) for u in (xx, yy)]
-                    moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
-                    eig = np.linalg.eigvalsh(moments)
-                    # No plane where the data span no area (a coarse level of a mostly masked
-                    # or shadowed image: a few pixels in one row or column).
-                    if eig[0] > 1e-6 * max(eig[1], 1e-30):
-                        inv = np.linalg.inv(moments)
-                        self._plane = (*(a.astype(_F) for a in ramps), lowfreq_plane * mu * wsum * inv @ inv)
-                    # Data weights of 1 on a top-left box and 0 elsewhere (an unmasked plain
-                    # image): the ramps are a row and a column there, applied by sums over the
-                    # box (1152 px level: 5.9 -> 3.6 ms a call, 2.3 without the plane).
-                    r1, c1 = (int(np.count_nonzero(self.w.any(axis=k))) for k in (1, 0))
-                    if self._plane is not None and np.all(self.w[:r1, :c1] == 1) and wsum == r1 * c1:
-                        self._box = (r1, c1, self._plane[0][0, :c1].copy(), self._plane[1][:r1, 0].copy())
+                self._plane, self._box = _plane_penalty(self.w, lowfreq_plane * mu)
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
@@ -1093,7 +1103,7 @@ def solve_variational(
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
-            lowfreq_plane=lowfreq_plane_weight if lowfreq is not None else 0.0,
+            lowfreq_plane=lowfreq_plane_weight,
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
