@@ -280,6 +280,17 @@ def _error_without_plane(height: np.ndarray, truth: np.ndarray) -> float:
     return normalised_height_error(flat(height), flat(truth))
 
 
+def _plain_lights(quick: bool) -> list[tuple[float, float]]:
+    """The lights of the plain-image tables (slants 15-60°; two in quick mode)."""
+    return LIGHTS[:2] if quick else LIGHTS[:4]
+
+
+def _plain_crop(n: int) -> tuple[slice, slice]:
+    """The crop of an n px tile's periodic rendering that the plain-image tables solve: a
+    surface that is not periodic on the image, as a real one."""
+    return slice(13, 13 + n - n // 8), slice(19, 19 + n - n // 8)
+
+
 def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
     """The four surfaces rendered without wrap-around (one-sided differences at the edges)
     and solved as plain images, light given: Tsai-Shah's error, the default's error and
@@ -291,7 +302,7 @@ def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
     out = []
     for name, truth in _surfaces(n).items():
         want = mean_tactile(truth, PIXEL_UM)
-        for slant, tilt in LIGHTS[:2] if quick else LIGHTS[:4]:
+        for slant, tilt in _plain_lights(quick):
             light = Light(slant, tilt)
             img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=False)
             r = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
@@ -301,7 +312,7 @@ def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
             e_ts = normalised_height_error(tsai_shah(img, light, pixel_size_um=PIXEL_UM), truth)
             e_forced = normalised_height_error(forced.height, truth)
             kept = "kept" if np.array_equal(r.height, forced.height) else f"dropped (with it: {e_forced:.3f})"
-            crop = (slice(13, 13 + n - n // 8), slice(19, 19 + n - n // 8))
+            crop = _plain_crop(n)
             cropped = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)[crop]
             on_crop = shape_from_shading(cropped, pixel_size_um=PIXEL_UM, light=light, periodic=False)
             with mock.patch.object(shading, "SPECTRAL_PRIOR_WEIGHT", 0.0):
@@ -365,8 +376,8 @@ def _margin_rows(n: int, quick: bool) -> list[str]:
     periodic domains of other sizes (``shading.PLAIN_MARGIN`` patched; the default's first):
     the domain's sides and the normalised height errors, light given."""
     truth = ts.woven_like((n, n), PIXEL_UM)
-    crop = (slice(13, 13 + n - n // 8), slice(19, 19 + n - n // 8))
-    lights = LIGHTS[:2] if quick else LIGHTS[:4]
+    crop = _plain_crop(n)
+    lights = _plain_lights(quick)
     images = [(render_lambertian(truth, PIXEL_UM, Light(*sl), ALBEDO, periodic=False),
                render_lambertian(truth, PIXEL_UM, Light(*sl), ALBEDO, periodic=True)[crop]) for sl in lights]
     out = []
@@ -721,7 +732,7 @@ def run(quick: bool = False) -> str:
               "| surface | crops | baseline: mean | worst | above 0.4 | default: mean | worst | above 0.4 |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |",
               *_random_crop_rows(quick)]
-    margin_lights = LIGHTS[:2] if quick else LIGHTS[:4]
+    margin_lights = _plain_lights(quick)
     lines += ["", f"The plain weave's plain image ({n} px) and its crop ({n - n // 8} px) on periodic"
               " domains of other sizes (the margin around the image, `shading.PLAIN_MARGIN`, as a"
               " fraction of its side; the default's first; the sides halve to fast FFT sizes):"
