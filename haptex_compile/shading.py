@@ -102,17 +102,37 @@ SWEEP_GAIN = 0.5
 # fits below this fraction of the first search's (measured: 0.05-0.09 where its light was
 # then kept, 0.2-1.0 where it was not; each final stage costs 1.5-8 s).
 SECOND_SEARCH_GAIN = 0.15
-# Weight of the flat-on-average prior for non-periodic images (see solve_variational).
-LOWFREQ_WEIGHT = 1.0
+# Weight of the flat-on-average prior for non-periodic images (see solve_variational). With
+# the spectral prior below holding a weave's long waves, the base prior need not be strong:
+# measured against 1.0 (bench_shading's plain images, light given, slants 15-60°, summed
+# errors of the four lights, image / crop): random bumps at 96 px 1.74 / 1.73 -> 1.49 / 1.58,
+# 128 px 1.73 / 1.91 -> 1.61 / 1.70, 256 px 1.02 / 1.07 -> 0.94 / 0.86 (at 60°: 0.326 ->
+# 0.298); Brownian surfaces 3.61 / 3.61 -> 3.16 / 3.29, 3.37 / 3.67 -> 2.92 / 3.38, 3.25 /
+# 3.50 -> 3.20 / 3.36; the plain weave and sphere caps within 0.01. On 60 crops of 512 px
+# tiles each (see LOWFREQ_PLANE_WEIGHT), mean errors: random bumps 0.253 -> 0.237, plain
+# weave 0.221 -> 0.225, sphere caps 0.328 -> 0.333. At 0.1 the bumps' 256 px image is no
+# better (1.02 -> 0.92 / 0.78 but 0.301 at 60°) and the weave's crops are worse (0.247).
+LOWFREQ_WEIGHT = 0.3
 LOWFREQ_CYCLES = 1.0
 # The prior is tested on the pyramid level at most LOWFREQ_CHECK_SIDE px across, and not the
 # finest: solved again without it, and dropped if its result has more than
-# LOWFREQ_REJECT_RATIO times the energy (solve_variational's lowfreq_check_level). Measured
-# on 96-256 px images (light given, slants 15-60°, tilts 30/120/200/300°): random bumps, plain
-# weave and Brownian surfaces 0.4-1.8, sphere caps on flat ground 8.8-1900. The prior
-# flattens those caps to errors of 0.94-0.98 (without it 0.01-0.06).
+# LOWFREQ_REJECT_RATIO times the energy and the result without it an albedo at most
+# LOWFREQ_REJECT_ALBEDO times its own (solve_variational's lowfreq_check_level). Measured
+# (energy ratio, albedo ratio) on 96-256 px images (light given, slants 15-60°, tilts
+# 30/120/200/300°) and on 240 crops of 512 px tiles (see LOWFREQ_PLANE_WEIGHT), after the
+# error with and without the prior: sphere caps on flat ground 17-210 (0.96-1.07), with
+# the prior 0.78-0.98, without 0.01-0.11; crops of a sphere cap without flat ground 1.25-210
+# (0.88-1.03), better without the prior in all but one; textures (plain weave, random bumps,
+# Brownian surfaces) 0.5-2.9, where the prior gave the better result up to 1.46 at albedo
+# ratios below 1.1, up to 1.66 above (the plain weave at 60°: without the prior a steeper
+# surface under albedo 1.1-1.6 x its own, error 0.99 against 0.07-0.10). On domains with
+# wider margins (PLAIN_MARGIN 0.15-0.3) that weave reaches energy ratios of 2.1-3.5 (albedo
+# ratios 1.4-2.1), which an energy threshold alone then dropped. The threshold was 4 with no
+# albedo test: crops of sphere caps with ratios of 1.9-4 came back flattened (0.99 -> 0.11
+# for a strip across the cap lit along its short side; see bench_shading's random crops).
 LOWFREQ_CHECK_SIDE = 128
-LOWFREQ_REJECT_RATIO = 4.0
+LOWFREQ_REJECT_RATIO = 1.75
+LOWFREQ_REJECT_ALBEDO = 1.1
 # The prior is tightened on the waves of up to SPECTRAL_PRIOR_CYCLES cycles per image side
 # across the light that the image's waves along it show to have little power (a weave has
 # none below its own frequency): a Gaussian prior of that power over noise of variance
@@ -1141,6 +1161,7 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
         kwargs.update(
             data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES,
             lowfreq_check_level=check_level, lowfreq_reject_ratio=LOWFREQ_REJECT_RATIO,
+            lowfreq_reject_albedo=LOWFREQ_REJECT_ALBEDO,
             lowfreq_plane_weight=LOWFREQ_PLANE_WEIGHT,
         )
         if light is not None and light.slant_deg >= MIN_SLANT_DEG:

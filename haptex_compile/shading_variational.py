@@ -905,6 +905,7 @@ def solve_variational(
     hold_from_level: int | None = None,
     lowfreq_check_level: int | None = None,
     lowfreq_reject_ratio: float = np.inf,
+    lowfreq_reject_albedo: float = np.inf,
 ) -> tuple[np.ndarray, float]:
     """Minimise the shading energy coarse to fine on a periodic domain.
 
@@ -1060,6 +1061,11 @@ def solve_variational(
         at the image's scale (an object on a flat ground) is flattened by the prior and
         its shading then fits badly; a texture that the prior suits fits about as well with
         it (see ``shading.LOWFREQ_REJECT_RATIO``).
+    lowfreq_reject_albedo : float
+        The prior is dropped only if, as well, the albedo without it is at most this factor
+        times the albedo with it: a result that fits better under a much brighter albedo is a
+        steeper surface that has run away, not a scene that the prior flattened (see
+        ``shading.LOWFREQ_REJECT_ALBEDO``).
 
     Returns
     -------
@@ -1128,7 +1134,8 @@ def solve_variational(
             for free_level in range(top, level - 1, -1):
                 z_free, albedo_free, free = run_level(free_level, z_free, albedo_free, 0.0)
             # Both energies without the prior (`free` has none).
-            if free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free):
+            worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
+            if worse and albedo_free <= lowfreq_reject_albedo * albedo:
                 z, albedo, lowfreq_weight = z_free, albedo_free, 0.0
     return z - z.mean(), albedo
 
