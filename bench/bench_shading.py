@@ -27,6 +27,7 @@ the same solver fitting the intensity of coarse pixels partly in shadow (baselin
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 from unittest import mock
 
@@ -334,13 +335,20 @@ CROP_TILE_PX = 512
 CROPS_PER_SURFACE = 30
 
 
+# The baselines of the random crops: the default without the plane term of the flat-on-average
+# prior, and with the prior as it was before its albedo test (weight 1, dropped above an
+# energy ratio of 4 alone).
+CROP_BASELINES = {"no plane": {"LOWFREQ_PLANE_WEIGHT": 0.0},
+                  "previous prior": {"LOWFREQ_WEIGHT": 1.0, "LOWFREQ_REJECT_RATIO": 4.0,
+                                     "LOWFREQ_REJECT_ALBEDO": np.inf}}
+
+
 def _random_crop_rows(quick: bool) -> list[str]:
     """Plain images cut at random from three surfaces' periodic renderings (CROP_TILE_PX
     tiles; 90-420 px sides of any aspect, any offset, any tilt, slants 15-60°; fixed seed;
     sphere caps' crops near the cap, whose footprint is 410 px across): the default's
-    normalised height error against the baseline without the plane term of the flat-on-average
-    prior (``shading.LOWFREQ_PLANE_WEIGHT = 0``), light given: mean, worst and the count
-    above 0.4."""
+    normalised height error against the baselines of ``CROP_BASELINES``, light given: mean,
+    worst and the count above 0.4."""
     n = CROP_TILE_PX
     rng = np.random.default_rng(1)
     surfaces = {"sphere cap (rim 45°, rounded)": ts.sphere_cap((n, n), PIXEL_UM),
@@ -348,7 +356,7 @@ def _random_crop_rows(quick: bool) -> list[str]:
                 "random bumps (slope 0.2)": ts.random_bumps((n, n), PIXEL_UM, seed=7)}
     out = []
     for name, truth in surfaces.items():
-        errors = {"default": [], "baseline": []}
+        errors = {key: [] for key in (*CROP_BASELINES, "default")}
         for _ in range(6 if quick else CROPS_PER_SURFACE):
             rows, cols = rng.integers(90, 420, 2)
             if name.startswith("sphere"):
@@ -358,12 +366,12 @@ def _random_crop_rows(quick: bool) -> list[str]:
             light = Light(float(rng.choice([15.0, 30.0, 45.0, 60.0])), float(rng.uniform(0.0, 360.0)))
             crop = (slice(oy, oy + rows), slice(ox, ox + cols))
             img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)[crop]
-            for key, weight in (("default", shading.LOWFREQ_PLANE_WEIGHT), ("baseline", 0.0)):
-                with mock.patch.object(shading, "LOWFREQ_PLANE_WEIGHT", weight):
+            for key in errors:
+                patch = CROP_BASELINES.get(key)
+                with mock.patch.multiple(shading, **patch) if patch else contextlib.nullcontext():
                     res = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
                 errors[key].append(normalised_height_error(res.height, truth[crop]))
-        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}"
-                 for e in (errors["baseline"], errors["default"])]
+        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}" for e in errors.values()]
         out.append(f"| {name} | {len(errors['default'])} | " + " | ".join(cells) + " |")
     return out
 
@@ -710,7 +718,7 @@ def run(quick: bool = False) -> str:
               " differences at the edges and solved with `periodic=False`, light given. Lines"
               " along the light leave the image, so waves along the light are barely fixed by the"
               " shading; a flat-on-average prior fixes them, and is dropped where the data"
-              " contradict it (`shading.LOWFREQ_REJECT_RATIO`). The prior is tightened on the"
+              " contradict it (`shading.LOWFREQ_REJECT_RATIO`, `LOWFREQ_REJECT_ALBEDO`). The prior is tightened on the"
               " long waves across the light that the image's waves along it show to have little"
               " power (`shading_prior`; baseline, same run: the default without that, "
               "`SPECTRAL_PRIOR_WEIGHT = 0`). Tactile error of plain surfaces."
@@ -725,12 +733,15 @@ def run(quick: bool = False) -> str:
     lines += ["", f"Plain images cut at random from the periodic renderings of {CROP_TILE_PX} px tiles"
               " (90-420 px sides of any aspect, any offset, any tilt, slants 15-60°, light given;"
               " fixed seed; the sphere cap's crops lie on its 410 px footprint, so that most show"
-              " no flat ground and its flat-on-average prior is dropped): normalised height error."
-              " Baseline, same run: the default without the plane term of that prior"
+              " no flat ground and its flat-on-average prior should be dropped): normalised height"
+              " error. Baselines, same run: the default without the plane term of that prior"
               " (`shading.LOWFREQ_PLANE_WEIGHT = 0`; a tilt along the light is traded against the"
-              " albedo):", "",
-              "| surface | crops | baseline: mean | worst | above 0.4 | default: mean | worst | above 0.4 |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- |",
+              " albedo), and with the prior as it was before its albedo test (`LOWFREQ_WEIGHT = 1`,"
+              " dropped above an energy ratio of 4 alone, `LOWFREQ_REJECT_RATIO = 4`,"
+              " `LOWFREQ_REJECT_ALBEDO = inf`):", "",
+              "| surface | crops | no plane: mean | worst | above 0.4 | previous prior: mean | worst |"
+              " above 0.4 | default: mean | worst | above 0.4 |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
               *_random_crop_rows(quick)]
     margin_lights = _plain_lights(quick)
     lines += ["", f"The plain weave's plain image ({n} px) and its crop ({n - n // 8} px) on periodic"
