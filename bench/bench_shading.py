@@ -371,7 +371,8 @@ def _random_crop_rows(quick: bool) -> list[str]:
                 with mock.patch.multiple(shading, **patch) if patch else contextlib.nullcontext():
                     res = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
                 errors[key].append(normalised_height_error(res.height, truth[crop]))
-        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}" for e in errors.values()]
+        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}"
+                 for e in errors.values()]
         out.append(f"| {name} | {len(errors['default'])} | " + " | ".join(cells) + " |")
     return out
 
@@ -718,8 +719,8 @@ def run(quick: bool = False) -> str:
               " differences at the edges and solved with `periodic=False`, light given. Lines"
               " along the light leave the image, so waves along the light are barely fixed by the"
               " shading; a flat-on-average prior fixes them, and is dropped where the data"
-              " contradict it (`shading.LOWFREQ_REJECT_RATIO`, `LOWFREQ_REJECT_ALBEDO`). The prior is tightened on the"
-              " long waves across the light that the image's waves along it show to have little"
+              " contradict it (`shading.LOWFREQ_REJECT_RATIO`, `LOWFREQ_REJECT_ALBEDO`). The prior"
+              " is tightened on the long waves across the light that the image's waves along it show to have little"
               " power (`shading_prior`; baseline, same run: the default without that, "
               "`SPECTRAL_PRIOR_WEIGHT = 0`). Tactile error of plain surfaces."
               " The surfaces are periodic tiles, so the last columns also crop"

@@ -109,9 +109,10 @@ SECOND_SEARCH_GAIN = 0.15
 # 128 px 1.73 / 1.91 -> 1.61 / 1.70, 256 px 1.02 / 1.07 -> 0.94 / 0.86 (at 60°: 0.326 ->
 # 0.298); Brownian surfaces 3.61 / 3.61 -> 3.16 / 3.29, 3.37 / 3.67 -> 2.92 / 3.38, 3.25 /
 # 3.50 -> 3.20 / 3.36; the plain weave and sphere caps within 0.01. On 60 crops of 512 px
-# tiles each (see LOWFREQ_PLANE_WEIGHT), mean errors: random bumps 0.253 -> 0.237, plain
-# weave 0.221 -> 0.225, sphere caps 0.328 -> 0.333. At 0.1 the bumps' 256 px image is no
-# better (1.02 -> 0.92 / 0.78 but 0.301 at 60°) and the weave's crops are worse (0.247).
+# tiles each (see LOWFREQ_PLANE_WEIGHT; both with an energy threshold of 2 to drop it), mean
+# errors: random bumps 0.253 -> 0.237, plain weave 0.221 -> 0.225, sphere caps 0.328 ->
+# 0.333. At 0.1 the weave's crops are worse (0.247, 10 above 0.4, against 0.225 and 7); at
+# 0.03 the bumps' 256 px images too (1.09 / 0.93).
 LOWFREQ_WEIGHT = 0.3
 LOWFREQ_CYCLES = 1.0
 # The prior is tested on the pyramid level at most LOWFREQ_CHECK_SIDE px across, and not the
@@ -119,17 +120,20 @@ LOWFREQ_CYCLES = 1.0
 # LOWFREQ_REJECT_RATIO times the energy and the result without it an albedo at most
 # LOWFREQ_REJECT_ALBEDO times its own (solve_variational's lowfreq_check_level). Measured
 # (energy ratio, albedo ratio) on 96-256 px images (light given, slants 15-60°, tilts
-# 30/120/200/300°) and on 240 crops of 512 px tiles (see LOWFREQ_PLANE_WEIGHT), after the
-# error with and without the prior: sphere caps on flat ground 17-210 (0.96-1.07), with
+# 30/120/200/300°) and on 210 crops of 512 px tiles (see LOWFREQ_PLANE_WEIGHT), after the
+# error with and without the prior: sphere caps on flat ground 17-210 (0.89-1.07), with
 # the prior 0.78-0.98, without 0.01-0.11; crops of a sphere cap without flat ground 1.25-210
 # (0.88-1.03), better without the prior in all but one; textures (plain weave, random bumps,
 # Brownian surfaces) 0.5-2.9, where the prior gave the better result up to 1.46 at albedo
 # ratios below 1.1, up to 1.66 above (the plain weave at 60°: without the prior a steeper
-# surface under albedo 1.1-1.6 x its own, error 0.99 against 0.07-0.10). On domains with
-# wider margins (PLAIN_MARGIN 0.15-0.3) that weave reaches energy ratios of 2.1-3.5 (albedo
-# ratios 1.4-2.1), which an energy threshold alone then dropped. The threshold was 4 with no
-# albedo test: crops of sphere caps with ratios of 1.9-4 came back flattened (0.99 -> 0.11
-# for a strip across the cap lit along its short side; see bench_shading's random crops).
+# surface under albedo 1.1-1.6 x its own, error 0.95-1.0 against 0.07-0.14). On domains
+# with wider margins (PLAIN_MARGIN 0.15-0.3) that weave reaches energy ratios of 2.1-3.5
+# (albedo ratios 1.8-2.1, measured with weight 1), which an energy threshold alone then
+# dropped. The threshold was 4 with no albedo test (and LOWFREQ_WEIGHT 1): crops of sphere
+# caps with ratios of 1.9-4 came back flattened (0.97 -> 0.11 for a strip across the cap lit
+# along its short side). Both changes on those 60 crops each, mean errors: sphere caps 0.354
+# -> 0.328, plain weave 0.227 -> 0.225, random bumps 0.253 -> 0.237 (bench_shading's 30
+# each: 0.364 -> 0.319, 0.243 -> 0.250, 0.270 -> 0.256).
 LOWFREQ_CHECK_SIDE = 128
 LOWFREQ_REJECT_RATIO = 1.75
 LOWFREQ_REJECT_ALBEDO = 1.1
