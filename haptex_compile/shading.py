@@ -610,7 +610,7 @@ def _moment_slant(values: np.ndarray) -> float:
     return float(np.rad2deg(np.arctan(np.sqrt(-3.0 * var * var / (m * mu3)))))
 
 
-def estimate_light(image, *, mask=None, refine: bool = True, periodic: bool = True) -> tuple[Light, float]:
+def estimate_light(image, *, mask=None, refine: bool = True) -> tuple[Light, float]:
     """Estimate the light direction (with its uncertainty) and the albedo from one image.
 
     Statistics of the shading of a stationary, isotropic random surface (in the spirit of
@@ -648,10 +648,6 @@ def estimate_light(image, *, mask=None, refine: bool = True, periodic: bool = Tr
     refine : bool
         Estimate the light jointly with the shape (about 40 solves on a 96-pixel image and
         40 on one of at most 256 pixels; 2.5-4.5 s for the 256 px bench tiles).
-    periodic : bool
-        Whether the image is a periodic tile. A plain image's final search stage solves it
-        as :func:`shape_from_shading` does, with free edges and the flat-on-average prior
-        (see :func:`_refine_light`).
 
     Returns
     -------
@@ -659,10 +655,10 @@ def estimate_light(image, *, mask=None, refine: bool = True, periodic: bool = Tr
         The light with its uncertainty, and the albedo.
     """
     img, _ = _as_image(image)
-    return _estimate_light(img, valid_pixels(img, mask), mask, refine, periodic=periodic)
+    return _estimate_light(img, valid_pixels(img, mask), mask, refine)
 
 
-def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> tuple[Light, float]:
+def _estimate_light(img, valid, mask, refine, censored=None) -> tuple[Light, float]:
     """:func:`estimate_light` on a prepared image (`censored`: :func:`_censored_pixels`
     of it, when the caller has them)."""
     if valid.sum() < 16 or float(np.std(img[valid])) < 1e-4:
@@ -688,8 +684,7 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     albedo, at_bound = None, False
     if refine:
         slant, tilt, slant_sd, tilt_sd, albedo, at_bound = _refine_light(
-            img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask),
-            periodic=periodic,
+            img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask)
         )
     if albedo is None:
         albedo = _moment_albedo(img[valid], slant)
@@ -740,7 +735,7 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
 
@@ -748,9 +743,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
     level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data
     energy left (thin-plate term excluded). ``fit.at_bound`` is the albedo from which a fit
     counts as held at that bound (``AT_BOUND_FRACTION`` of it). `censored` is
-    :func:`_censored_pixels` of the image. A plain image (not `periodic`) is solved on its
-    domain (:func:`_solve_domain`: free edges, the flat-on-average prior for that light), and
-    the misfit is the data energy on the image.
+    :func:`_censored_pixels` of the image.
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
@@ -775,21 +768,12 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
         key = (round(s, 3), round(float(t) % 360.0, 3))
         if key not in cache:
-            light = Light(s, t % 360.0)
-            lv = light.vector
-            dom, dom_w, kw = small, w, dict(cens)
-            if not periodic:
-                no_pixels = np.zeros(small.shape)
-                pixels = tuple(no_pixels if cens.get(k) is None else cens[k] for k in ("dark", "bright"))
-                dom, on_domain, kw = _solve_domain(small, w > 0, pixels, False, light, top)
-                dom_w = _embed(w, dom.shape) * on_domain
-                kw.pop("albedo_max", None)  # the search's own bound below
-                kw = {k: v for k, v in kw.items() if k not in ("dark", "bright") or np.any(v)}
+            lv = Light(s, t % 360.0).vector
             # The exact reflectance on every level: the misfits of different lights are
             # compared, and the coarse levels' damping depends on the light.
-            z, a = solve_variational(dom, dom_w, lv, top, albedo_max=top / ALIGN_COS,
-                                     subgrid_damping=0.0, **kw)
-            e = energy(dom, dom_w, lv, a, z, lam=0.0, dark=kw.get("dark"), bright=kw.get("bright"))
+            z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS,
+                                     subgrid_damping=0.0, **cens)
+            e = energy(small, w, lv, a, z, lam=0.0, **cens)
             # A failed solve ranks last (np.argmin would take a NaN for the minimum).
             cache[key] = (e if np.isfinite(e) else np.inf, a)
         return cache[key]
@@ -798,7 +782,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
     return fit
 
 
-def light_misfit(image, light: Light, *, mask=None, periodic: bool = True) -> tuple[float, bool]:
+def light_misfit(image, light: Light, *, mask=None) -> tuple[float, bool]:
     """The misfit by which the light search ranks lights, for one light: the data energy the
     default solver leaves on the image (block-averaged to at most ``FINAL_SIDE_PX`` pixels,
     as in the search's final stage), with the albedo bounded above by ``I_top / ALIGN_COS``.
@@ -817,8 +801,7 @@ def light_misfit(image, light: Light, *, mask=None, periodic: bool = True) -> tu
     """
     img, _ = _as_image(image)
     valid = valid_pixels(img, mask)
-    fit = _misfit_function(img, valid, _censored_pixels(img, mask), FINAL_SIDE_PX, _block_average,
-                           periodic=periodic)
+    fit = _misfit_function(img, valid, _censored_pixels(img, mask), FINAL_SIDE_PX, _block_average)
     misfit, albedo = fit(light.slant_deg, light.tilt_deg)
     return float(misfit), bool(albedo >= fit.at_bound)
 
@@ -834,7 +817,7 @@ class _LightFit(NamedTuple):
     at_bound: bool
 
 
-def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, periodic=True) -> _LightFit:
+def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX) -> _LightFit:
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
     For each candidate light the default solver fits a surface to a reduced image (at most
@@ -914,13 +897,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         256 px.
     """
     coarse = _misfit_function(img, valid, censored, side)
-    # A plain image's final stage solves it as shape_from_shading will (free edges, the
-    # prior); the coarse stage keeps the periodic solve. Measured on bench_shading's 16 plain
-    # crops (224 px, light estimated): summed height error 5.72 -> 5.30 (random bumps at
-    # 30-45° 0.300 / 0.417 -> 0.213 / 0.217, against 0.208 / 0.199 with the light given; the
-    # plain weave at 60° 0.283 -> 0.152; Brownian surfaces 0.78-0.89 -> 0.80-0.88), at 1.9 x
-    # the time (94 -> 177 s); both stages plain: 5.52, 2.8 x.
-    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
+    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
     knee, coarse_misfit, found = _search_light(coarse, final, lossy, float(slant), float(tilt))
     swept = _swept_tilt(coarse, knee, float(tilt), found.tilt)
@@ -1304,7 +1281,7 @@ def shape_from_shading(
         return SfsResult(flat, used, top, method, tuple(warnings))
     censored = _censored_pixels(img, mask)
     if light is None:
-        light, albedo = _estimate_light(img, valid, mask, True, censored, periodic)
+        light, albedo = _estimate_light(img, valid, mask, True, censored)
         warnings.append(estimated_light_note(light))
     else:
         albedo = _moment_albedo(img[valid], light.slant_deg)
