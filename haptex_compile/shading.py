@@ -735,6 +735,11 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
+def _finite_or_zero(img: np.ndarray) -> np.ndarray:
+    """`img` with its non-finite pixels (which carry no data) set to 0."""
+    return np.where(np.isfinite(img), img, 0.0)
+
+
 def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
@@ -752,7 +757,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to):
     # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
     # bench). An image small enough is not reduced: its non-finite pixels (weight 0) must not
     # reach the solver's sums.
-    small, w = reduce(np.where(np.isfinite(img), img, 0.0), valid, side_px)
+    small, w = reduce(_finite_or_zero(img), valid, side_px)
     # Censored pixels of the reduced image: the fraction of black (saturated) pixels in
     # each reduced pixel that has too few valid ones.
     cens = {}
@@ -1292,7 +1297,7 @@ def shape_from_shading(
                 "light along the view axis: Tsai-Shah's df/dZ vanishes at the flat start and the"
                 " height stays flat"
             )
-        h = tsai_shah(np.where(np.isfinite(img), img, 0.0), light, pixel_size_um=pixel_size_um)
+        h = tsai_shah(_finite_or_zero(img), light, pixel_size_um=pixel_size_um)
         return SfsResult(h, light, 1.0, method, tuple(warnings))
 
     used_method = method

@@ -51,6 +51,7 @@ import os
 import threading
 from collections.abc import Callable, Collection
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 import scipy.fft as sfft
@@ -279,33 +280,59 @@ def _across(light) -> tuple[float, float] | None:
     return (-ly / n, lx / n) if n > 1e-9 else None
 
 
-def _plane_penalty(w: np.ndarray, weight: float):
+class _PlaneTerm(NamedTuple):
     """The rank-two operator ``weight x sum(w) x |slope|² / 2`` on the slopes of the
-    least-squares plane through the data (weights `w`), as ``(plane, box)`` for
-    :meth:`_Problem.lowfreq`: ``plane = (ux, uy, q)``, the slopes being ``M^-1 (<ux, z>,
-    <uy, z>)`` with ``u`` the weighted, centred coordinates and ``M`` their moments, and
-    ``q = weight x sum(w) x M^-2``; `box` the same ramps as a row and a column where the data
-    weigh 1 on a top-left box and 0 elsewhere (an unmasked plain image: sums over the box,
-    1152 px level 5.9 -> 3.6 ms a call, 2.3 without the plane), else None. (None, None) where
-    the data span no area (a coarse level of a mostly masked or shadowed image: a few pixels
-    in one row or column), whose plane is undefined.
+    least-squares plane through the data (weights `w`); see :func:`_plane_term`.
+
+    The slopes are ``M^-1 (<ux, z>, <uy, z>)``, with ``u`` the weighted, centred coordinates
+    and ``M`` their moments, and ``q = weight x sum(w) x M^-2``. Where the data weigh 1 on a
+    top-left box and 0 elsewhere (an unmasked plain image), the ramps are kept as a row `rx`
+    and a column `ry` over that box and the sums run over it (1152 px level: 5.9 -> 3.6 ms a
+    call, 2.3 without the plane); else `ux`, `uy` are the full ramps.
     """
+
+    q: np.ndarray
+    box: tuple[int, int] | None = None
+    rx: np.ndarray | None = None
+    ry: np.ndarray | None = None
+    ux: np.ndarray | None = None
+    uy: np.ndarray | None = None
+
+    def add_to(self, v: np.ndarray, out: np.ndarray) -> None:
+        """Add the operator applied to `v` to `out`."""
+        if self.box is not None:
+            r1, c1 = self.box
+            box = v[:r1, :c1]
+            gx, gy = self.q @ [float(np.dot(box.sum(axis=0), self.rx)), float(np.dot(box.sum(axis=1), self.ry))]
+            o = out[:r1, :c1]
+            o += (self.rx * _F(gx))[None, :]
+            o += (self.ry * _F(gy))[:, None]
+        else:
+            gx, gy = self.q @ [float(np.vdot(self.ux, v)), float(np.vdot(self.uy, v))]
+            out += self.ux * _F(gx)
+            out += self.uy * _F(gy)
+
+
+def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
+    """The :class:`_PlaneTerm` of data weights `w`; None where the data span no area (a
+    coarse level of a mostly masked or shadowed image: a few pixels in one row or column),
+    whose plane is undefined."""
     wsum = float(w.sum())
     if wsum <= 0:
-        return None, None
+        return None
     yy, xx = np.mgrid[: w.shape[0], : w.shape[1]]
     ramps = [((u - float(np.sum(w * u)) / wsum) * w) for u in (xx, yy)]
     moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
     eig = np.linalg.eigvalsh(moments)
     if not eig[0] > 1e-6 * max(eig[1], 1e-30):
-        return None, None
+        return None
     inv = np.linalg.inv(moments)
-    plane = (*(a.astype(_F) for a in ramps), weight * wsum * inv @ inv)
+    q = weight * wsum * inv @ inv
+    ux, uy = (a.astype(_F) for a in ramps)
     r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
-    box = None
     if np.all(w[:r1, :c1] == 1) and wsum == r1 * c1:
-        box = (r1, c1, plane[0][0, :c1].copy(), plane[1][:r1, 0].copy())
-    return plane, box
+        return _PlaneTerm(q, (r1, c1), rx=ux[0, :c1].copy(), ry=uy[:r1, 0].copy())
+    return _PlaneTerm(q, ux=ux, uy=uy)
 
 
 class _Problem:
@@ -398,9 +425,7 @@ class _Problem:
             # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
-            self._plane, self._box = None, None
-            if lowfreq_plane > 0:
-                self._plane, self._box = _plane_penalty(self.w, lowfreq_plane * mu)
+            self._plane = _plane_term(self.w, lowfreq_plane * mu) if lowfreq_plane > 0 else None
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
@@ -412,18 +437,8 @@ class _Problem:
         back[:, self._lf_kx] = sfft.ifft(spec, axis=0, overwrite_x=True)
         out = sfft.irfft(back, n=v.shape[1], axis=1, workers=self.workers, overwrite_x=True)
         out = out.astype(_F, copy=False)
-        if self._box is not None:
-            r1, c1, rx, ry = self._box
-            box = v[:r1, :c1]
-            gx, gy = self._plane[2] @ [float(np.dot(box.sum(axis=0), rx)), float(np.dot(box.sum(axis=1), ry))]
-            o = out[:r1, :c1]
-            o += (rx * _F(gx))[None, :]
-            o += (ry * _F(gy))[:, None]
-        elif self._plane is not None:
-            ux, uy, q = self._plane
-            gx, gy = q @ [float(np.vdot(ux, v)), float(np.vdot(uy, v))]
-            out += ux * _F(gx)
-            out += uy * _F(gy)
+        if self._plane is not None:
+            self._plane.add_to(v, out)
         return out
 
     def gradient_data_energy(self, res):
