@@ -713,8 +713,9 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     return light, albedo
 
 
-def estimated_light_note(light: Light) -> str:
-    """The warning that states an estimated light and its uncertainty."""
+def estimated_light_note(light: Light, periodic: bool = True) -> str:
+    """The warning that states an estimated light and its uncertainty (`periodic` False: it
+    was estimated on a plain image, where the search is less sure)."""
     note = (
         f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
         f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
@@ -736,6 +737,13 @@ def estimated_light_note(light: Light) -> str:
             " again beneath (the ± spans it): on the bench such estimates were right for 5 of 7"
             " lattice reliefs lit at 5-15°, otherwise up to 18° off in slant and 70° in tilt:"
             " give --light"
+        )
+    if not periodic:
+        note += (
+            "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
+            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 26 estimates left"
+            " the heights more than 5 points worse than the true light's, 11 of them not flagged"
+            " UNRELIABLE: give --light when it is known"
         )
     return note
 
@@ -1320,7 +1328,7 @@ def shape_from_shading(
     censored = _censored_pixels(img, mask)
     if light is None:
         light, albedo = _estimate_light(img, valid, mask, True, censored, periodic=periodic)
-        warnings.append(estimated_light_note(light))
+        warnings.append(estimated_light_note(light, periodic))
     else:
         albedo = _moment_albedo(img[valid], light.slant_deg)
 

@@ -561,6 +561,12 @@ def test_a_plain_images_light_misfit_leaves_out_the_seam():
     assert as_tile.slant_deg >= 49.0
 
 
+def test_a_light_estimated_on_a_plain_image_says_it_is_less_sure():
+    light = Light(30.0, 200.0, 2.0, 1.0)
+    assert "plain image" in shading.estimated_light_note(light, periodic=False)
+    assert "plain image" not in shading.estimated_light_note(light)
+
+
 def test_non_periodic_image_beats_tsai_shah():
     h = ts.random_bumps((128, 128), PX, seed=4)
     light = Light(45.0, 200.0)
