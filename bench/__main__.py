@@ -31,7 +31,7 @@ if str(BENCH_DIR) not in sys.path:  # plain-script imports (bench modules have n
 import report_utils as ru  # noqa: E402
 
 # The sections, in the order the report shows them; others follow alphabetically.
-EXPECTED = ("perception", "tables", "playback", "lattice", "shading", "photo", "fractal", "kes", "io")
+EXPECTED = ("perception", "tables", "playback", "lattice", "shading", "light", "photo", "fractal", "kes", "io")
 # Seconds per module. Full mode: bench_shading takes about 400 s and bench_photo 330 s on an
 # unloaded machine (2 cores); a shared one runs 10-35 % slower, so 600 s left little margin.
 TIMEOUT_S = {"quick": 240.0, "full": 900.0}

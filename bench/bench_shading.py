@@ -347,21 +347,18 @@ CROP_BASELINES = {"no plane": {"LOWFREQ_PLANE_WEIGHT": 0.0},
                                      "LOWFREQ_REJECT_ALBEDO": np.inf}}
 
 
-def _random_crop_rows(quick: bool) -> list[str]:
+def random_crops(count: int):
     """Plain images cut at random from three surfaces' periodic renderings (CROP_TILE_PX
-    tiles; 90-420 px sides of any aspect, any offset, any tilt, slants 15-60°; fixed seed;
-    sphere caps' crops near the cap, whose footprint is 410 px across): the default's
-    normalised height error against the baselines of ``CROP_BASELINES``, light given: mean,
-    worst and the count above 0.4."""
+    tiles; 90-420 px sides of any aspect, any offset, any tilt, slants 15-60°; seed 1;
+    sphere caps' crops near the cap, whose footprint is 410 px across), `count` per surface:
+    yields (surface name, true heights of the crop (µm), image, light)."""
     n = CROP_TILE_PX
     rng = np.random.default_rng(1)
     surfaces = {"sphere cap (rim 45°, rounded)": ts.sphere_cap((n, n), PIXEL_UM),
                 "woven (plain weave)": ts.woven_like((n, n), PIXEL_UM),
                 "random bumps (slope 0.2)": ts.random_bumps((n, n), PIXEL_UM, seed=7)}
-    out = []
     for name, truth in surfaces.items():
-        errors = {key: [] for key in (*CROP_BASELINES, "default")}
-        for _ in range(6 if quick else CROPS_PER_SURFACE):
+        for _ in range(count):
             rows, cols = rng.integers(90, 420, 2)
             if name.startswith("sphere"):
                 oy, ox = (n - rows) // 2 + rng.integers(-20, 20), (n - cols) // 2 + rng.integers(-20, 20)
@@ -369,15 +366,24 @@ def _random_crop_rows(quick: bool) -> list[str]:
                 oy, ox = rng.integers(0, n - rows), rng.integers(0, n - cols)
             light = Light(float(rng.choice([15.0, 30.0, 45.0, 60.0])), float(rng.uniform(0.0, 360.0)))
             crop = (slice(oy, oy + rows), slice(ox, ox + cols))
-            img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)[crop]
-            for key in errors:
-                patch = CROP_BASELINES.get(key)
-                with mock.patch.multiple(shading, **patch) if patch else contextlib.nullcontext():
-                    res = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
-                errors[key].append(normalised_height_error(res.height, truth[crop]))
-        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}"
-                 for e in errors.values()]
-        out.append(f"| {name} | {len(errors['default'])} | " + " | ".join(cells) + " |")
+            yield name, truth[crop], render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=True)[crop], light
+
+
+def _random_crop_rows(quick: bool) -> list[str]:
+    """:func:`random_crops`: the default's normalised height error against the baselines of
+    ``CROP_BASELINES``, light given: mean, worst and the count above 0.4."""
+    errors: dict[str, dict[str, list[float]]] = {}
+    for name, truth, img, light in random_crops(6 if quick else CROPS_PER_SURFACE):
+        by_key = errors.setdefault(name, {key: [] for key in (*CROP_BASELINES, "default")})
+        for key, errs in by_key.items():
+            patch = CROP_BASELINES.get(key)
+            with mock.patch.multiple(shading, **patch) if patch else contextlib.nullcontext():
+                res = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
+            errs.append(normalised_height_error(res.height, truth))
+    out = []
+    for name, by_key in errors.items():
+        cells = [f"{np.mean(e):.3f} | {np.max(e):.3f} | {int(np.sum(np.array(e) > 0.4))}" for e in by_key.values()]
+        out.append(f"| {name} | {len(by_key['default'])} | " + " | ".join(cells) + " |")
     return out
 
 

@@ -1,0 +1,97 @@
+"""Light estimated on plain images (issue 7): random crops, the light estimated against given.
+
+Plain images cut at random from the periodic renderings of 512 px tiles of the sphere cap,
+the plain weave and random bumps (``bench_shading.random_crops``: 90-420 px sides of any
+aspect, any offset, any tilt, slants 15-60°; seed 1; 20 per surface, 4 in quick mode), solved
+with ``shape_from_shading(periodic=False)``: the normalised height error with the light given
+and estimated, how many estimates leave the heights more than 5 points worse than the given
+light and how many of those the estimate flagged UNRELIABLE (``Light.albedo_at_bound``), and
+flags on estimates that were not worse. Baseline, same run: the light search without its edge
+band on plain images (``shading.PLAIN_MISFIT_BAND = 0``: the misfit of each candidate light
+includes the seam of its periodic solve).
+
+    python bench/bench_light.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_shading import PIXEL_UM, random_crops  # noqa: E402
+
+from haptex_compile import shading  # noqa: E402
+from haptex_compile.shading import normalised_height_error, shape_from_shading  # noqa: E402
+
+CROPS_PER_SURFACE = 20
+WORSE_BY = 0.05  # "worse": more than 5 points of height error above the given light's
+
+
+def _estimated(img, truth, band: float) -> tuple[float, bool, float]:
+    """Height error with the light estimated (edge band `band`), its flag, and the seconds."""
+    with mock.patch.object(shading, "PLAIN_MISFIT_BAND", band):
+        t0 = time.perf_counter()
+        res = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=False)
+        seconds = time.perf_counter() - t0
+    return normalised_height_error(res.height, truth), bool(res.light.albedo_at_bound), seconds
+
+
+def run(quick: bool = False) -> str:
+    variants = {"without the band": 0.0, "default": shading.PLAIN_MISFIT_BAND}
+    stats: dict[str, dict] = {}
+    for name, truth, img, light in random_crops(4 if quick else CROPS_PER_SURFACE):
+        given = normalised_height_error(shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light,
+                                                           periodic=False).height, truth)
+        s = stats.setdefault(name, {"given": [], **{k: {"err": [], "worse": 0, "worse_flagged": 0,
+                                                          "false_flags": 0, "s": 0.0} for k in variants}})
+        s["given"].append(given)
+        for key, band in variants.items():
+            err, flagged, seconds = _estimated(img, truth, band)
+            v = s[key]
+            v["err"].append(err)
+            v["s"] += seconds
+            if err > given + WORSE_BY:
+                v["worse"] += 1
+                v["worse_flagged"] += flagged
+            else:
+                v["false_flags"] += flagged
+
+    lines = [
+        "Light estimated on plain images: random crops of 512 px tiles' periodic renderings (90-420 px"
+        " sides, any offset and tilt, slants 15-60°; `bench_shading.random_crops`, seed 1), solved with"
+        " `periodic=False`. Mean normalised height error with the light given and estimated; worse ="
+        f" estimates more than {WORSE_BY * 100:g} points worse than the given light (of them flagged"
+        " UNRELIABLE, `Light.albedo_at_bound`); false flags = flagged estimates that were not worse;"
+        " seconds of the estimated-light solves. Baseline, same run: the light search without its edge"
+        f" band (`shading.PLAIN_MISFIT_BAND = 0`; default {shading.PLAIN_MISFIT_BAND:g}):",
+        "",
+        "| surface | crops | light given: mean | " + " | ".join(
+            f"{k}: mean | worse (flagged) | false flags | s" for k in variants) + " |",
+        "| --- | --- | --- | " + " | ".join("--- | --- | --- | ---" for _ in variants) + " |",
+    ]
+    totals = {k: [0, 0, 0] for k in variants}
+    for name, s in stats.items():
+        cells = []
+        for key in variants:
+            v = s[key]
+            cells.append(f"{np.mean(v['err']):.3f} | {v['worse']} ({v['worse_flagged']}) | {v['false_flags']} | {v['s']:.0f}")
+            totals[key][0] += v["worse"]
+            totals[key][1] += v["worse_flagged"]
+            totals[key][2] += len(v["err"])
+        lines.append(f"| {name} | {len(s['given'])} | {np.mean(s['given']):.3f} | " + " | ".join(cells) + " |")
+    lines += ["", "All surfaces: " + "; ".join(
+        f"{key}, {t[0]} of {t[2]} estimates worse, {t[0] - t[1]} of them not flagged" for key, t in totals.items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true")
+    print(run(parser.parse_args().quick))
