@@ -23,7 +23,6 @@ from unittest import mock
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_shading import PIXEL_UM, random_crops  # noqa: E402
 

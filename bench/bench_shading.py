@@ -36,6 +36,7 @@ import numpy as np
 from haptex_compile import known_surfaces as ts
 from haptex_compile import shading
 from haptex_compile.colours import TwoColourModel
+from haptex_compile.sources import remove_plane
 from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tables import mean_tactile
 from haptex_compile.shading import (
@@ -266,19 +267,6 @@ def _sharp_rim_rows(n: int) -> list[tuple[float, float, float, float]]:
     return out
 
 
-def _levelled(height: np.ndarray) -> np.ndarray:
-    """`height` less its least-squares plane. On a plain image a uniform slope hardly changes
-    the shading (along the light it changes the brightness uniformly, which the fitted albedo
-    absorbs; across it, only at second order), and the photo pipeline averages a plain solve
-    over the lattice, which removes any plane. The bench's Brownian tile has half its variance
-    in its plane over 256 px (63 % over the 224 px crop)."""
-    rows, cols = height.shape
-    y, x = np.mgrid[:rows, :cols]
-    basis = np.stack([np.ones(height.size), x.ravel(), y.ravel()], axis=1)
-    a = np.asarray(height, dtype=float).ravel()
-    return (a - basis @ np.linalg.lstsq(basis, a, rcond=None)[0]).reshape(rows, cols)
-
-
 def _plain_lights(quick: bool) -> list[tuple[float, float]]:
     """The lights of the plain-image tables (slants 15-60°; two in quick mode)."""
     return LIGHTS[:2] if quick else LIGHTS[:4]
@@ -293,15 +281,18 @@ def _plain_crop(n: int) -> tuple[slice, slice]:
 def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
     """The four surfaces rendered without wrap-around (one-sided differences at the edges)
     and solved as plain images, light given: Tsai-Shah's error, the default's error and
-    tactile error (mean a40 / a320 of plain surfaces), both also levelled (:func:`_levelled`), whether the default kept its
-    flat-on-average prior (the same heights as with the prior forced), and the default's
+    tactile error (mean a40 / a320 of plain surfaces), both also levelled (``sources.remove_plane``,
+    as height maps are: on a plain image a uniform slope hardly changes the shading, and the
+    photo pipeline averages a plain solve over the lattice, which removes any plane; the
+    Brownian tile has half its variance in its plane over 256 px, 63 % over the crop),
+    whether the default kept its flat-on-average prior (the same heights as with the prior forced), and the default's
     error on a crop of the periodic rendering (the bench's surfaces are periodic tiles: a
     solver that wrapped the image would do well on them and not on a real one), with the
     light given and estimated; the baseline is the default without the spectral prior."""
     out = []
     for name, truth in _surfaces(n).items():
         want = mean_tactile(truth, PIXEL_UM)
-        want_levelled = mean_tactile(_levelled(truth), PIXEL_UM)
+        want_levelled = mean_tactile(remove_plane(truth), PIXEL_UM)
         for slant, tilt in _plain_lights(quick):
             light = Light(slant, tilt)
             img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=False)
@@ -309,7 +300,7 @@ def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
             with mock.patch.object(shading, "LOWFREQ_REJECT_RATIO", np.inf):
                 forced = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False)
             got = mean_tactile(_same_rms(r.height, truth), PIXEL_UM)
-            got_levelled = mean_tactile(_same_rms(_levelled(r.height), _levelled(truth)), PIXEL_UM)
+            got_levelled = mean_tactile(_same_rms(remove_plane(r.height), remove_plane(truth)), PIXEL_UM)
             e_ts = normalised_height_error(tsai_shah(img, light, pixel_size_um=PIXEL_UM), truth)
             e_forced = normalised_height_error(forced.height, truth)
             kept = "kept" if np.array_equal(r.height, forced.height) else f"dropped (with it: {e_forced:.3f})"
@@ -323,13 +314,13 @@ def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
             out.append(
                 f"| {name} | {slant:g}, {tilt:g} | {e_ts:.3f} | {normalised_height_error(base.height, truth):.3f}"
                 f" | {normalised_height_error(r.height, truth):.3f}"
-                f" | {normalised_height_error(_levelled(r.height), _levelled(truth)):.3f}"
+                f" | {normalised_height_error(remove_plane(r.height), remove_plane(truth)):.3f}"
                 f" | {got['a40'] / want['a40'] - 1:+.0%} / {got['a320'] / want['a320'] - 1:+.0%}"
                 f" | {got_levelled['a40'] / want_levelled['a40'] - 1:+.0%} /"
                 f" {got_levelled['a320'] / want_levelled['a320'] - 1:+.0%} | {kept}"
                 f" | {normalised_height_error(base_crop.height, truth[crop]):.3f}"
                 f" | {normalised_height_error(on_crop.height, truth[crop]):.3f}"
-                f" ({normalised_height_error(_levelled(on_crop.height), _levelled(truth[crop])):.3f})"
+                f" ({normalised_height_error(remove_plane(on_crop.height), remove_plane(truth[crop])):.3f})"
                 f" | {normalised_height_error(found.height, truth[crop]):.3f} ({found.light.slant_deg:.1f}, {found.light.tilt_deg:.1f}) |"
             )
     return out

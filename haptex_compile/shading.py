@@ -702,7 +702,7 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     if refine:
         slant, tilt, slant_sd, tilt_sd, albedo, at_bound = _refine_light(
             img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask),
-            band=0.0 if periodic else PLAIN_MISFIT_BAND,
+            periodic=periodic,
         )
     if albedo is None:
         albedo = _moment_albedo(img[valid], slant)
@@ -766,16 +766,16 @@ def _finite_or_zero(img: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(img), img, 0.0)
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, band=0.0):
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
 
     For each light the default solver fits a surface, with the exact reflectance on every
     level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data
-    energy left (thin-plate term excluded), outside a band of `band` times each side along
-    the edges (a plain image's: see ``PLAIN_MISFIT_BAND``). ``fit.at_bound`` is the albedo
-    from which a fit counts as held at that bound (``AT_BOUND_FRACTION`` of it). `censored`
-    is :func:`_censored_pixels` of the image.
+    energy left (thin-plate term excluded); on a plain image (`periodic` False), outside a
+    band of ``PLAIN_MISFIT_BAND`` times each side along the edges. ``fit.at_bound`` is the
+    albedo from which a fit counts as held at that bound (``AT_BOUND_FRACTION`` of it).
+    `censored` is :func:`_censored_pixels` of the image.
     """
     from haptex_compile.shading_variational import energy, solve_variational
 
@@ -795,9 +795,9 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, band=
             cens[key] = frac if frac.any() else None
     top = float(np.percentile(small[w > 0], 99.9))
     w_misfit = w
-    if band > 0:
+    if not periodic:
         w_misfit = np.zeros_like(w)
-        br, bc = (int(round(band * n)) for n in w.shape)
+        br, bc = (int(round(PLAIN_MISFIT_BAND * n)) for n in w.shape)
         w_misfit[br:w.shape[0] - br, bc:w.shape[1] - bc] = w[br:w.shape[0] - br, bc:w.shape[1] - bc]
         if w_misfit.sum() < 0.25 * w.sum():
             w_misfit = w  # a mask that leaves little data inside the band: keep it all
@@ -843,7 +843,7 @@ def light_misfit(image, light: Light, *, mask=None, periodic: bool = True) -> tu
     img, _ = _as_image(image)
     valid = valid_pixels(img, mask)
     fit = _misfit_function(img, valid, _censored_pixels(img, mask), FINAL_SIDE_PX, _block_average,
-                           band=0.0 if periodic else PLAIN_MISFIT_BAND)
+                           periodic=periodic)
     misfit, albedo = fit(light.slant_deg, light.tilt_deg)
     return float(misfit), bool(albedo >= fit.at_bound)
 
@@ -859,7 +859,7 @@ class _LightFit(NamedTuple):
     at_bound: bool
 
 
-def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, band=0.0) -> _LightFit:
+def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, periodic=True) -> _LightFit:
     """Estimate the light jointly with the shape: the light whose best surface explains the image.
 
     For each candidate light the default solver fits a surface to a reduced image (at most
@@ -870,9 +870,8 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, band=0
     (the misfit falls monotonically towards grazing light); with it, the data misfit has a
     sharp minimum near the true slant (measured on the bench surfaces at 128 px).
 
-    On a plain image (`band` > 0) the misfit leaves out a band of `band` times each side
-    along the edges, where the periodic solve must join edges that do not match (see
-    ``PLAIN_MISFIT_BAND``).
+    On a plain image (`periodic` False) the misfit leaves out a band along the edges, where
+    the periodic solve must join edges that do not match (see ``PLAIN_MISFIT_BAND``).
 
     Attached shadows and over-exposed shading (``CENSORED``): each solve takes them as
     one-sided bounds (see :func:`_censored_pixels`), so a light that would leave a shadowed
@@ -942,8 +941,8 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, band=0
         0.960 -> 0.614, 0.603 with the light given). Cost: about 30-50 more solves, 2-4 s at
         256 px.
     """
-    coarse = _misfit_function(img, valid, censored, side, band=band)
-    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, band=band)
+    coarse = _misfit_function(img, valid, censored, side, periodic=periodic)
+    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
     knee, coarse_misfit, found = _search_light(coarse, final, lossy, float(slant), float(tilt))
     swept = _swept_tilt(coarse, knee, float(tilt), found.tilt)
