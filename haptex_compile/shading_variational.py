@@ -313,6 +313,38 @@ class _PlaneTerm(NamedTuple):
             out += self.uy * _F(gy)
 
 
+# The low-frequency prior works on block means of up to this many pixels a side (a power of 2;
+# see _lowfreq_block); 1 = on the pixels.
+LOWFREQ_BLOCK = 8
+
+
+def _lowfreq_block(lf: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[int, int]):
+    """(b, symbol on the grid of b x b block means) for the low-frequency prior of symbol `lf`
+    (rfft layout of a `shape` level, kept waves on rows `ky` and columns `kx`), or None.
+
+    The prior's operator is then ``b² P^T L_b P`` with ``P`` the block means and ``L_b`` the
+    symbol on their grid: symmetric, and for a wave of k cycles per side the block mean keeps
+    ``sinc(k b / n)`` of it. Blocks are taken where they divide the level and every kept wave
+    has at most 1 / 16 of the block grid's cycles (it keeps 99.4 % of its amplitude or more).
+    FFTs of the block grid replace a level's transforms (1152 px level, 8 px blocks: 3.7 ->
+    1.0 ms a call).
+    """
+    rows, cols = shape
+    if ky.size == 0 or kx.size == 0:
+        return None
+    fy = np.where(ky <= rows // 2, ky, ky - rows)  # signed cycles per side
+    top_y, top_x = int(np.max(np.abs(fy))), int(np.max(kx))
+    b = LOWFREQ_BLOCK
+    while b > 1 and (rows % b or cols % b or 16 * top_y > rows // b or 16 * top_x > cols // b):
+        b //= 2
+    if b == 1:
+        return None
+    rb, cb = rows // b, cols // b
+    sym = np.zeros((rb, cb // 2 + 1), _F)
+    sym[np.ix_(np.mod(fy, rb), kx)] = lf[np.ix_(ky, kx)]
+    return b, sym
+
+
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
     """The :class:`_PlaneTerm` of data weights `w`; None where the data span no area (a
     coarse level of a mostly masked or shadowed image: a few pixels in one row or column),
@@ -408,8 +440,13 @@ class _Problem:
             # waves, 1 Mpx plain image 2.2 -> 2.8 s).
             keep = lf > LOWFREQ_SUPPORT * float(lf.max())
             if lowfreq_spectral is not None:
-                # The image's own long-wave power tightens the prior (shading_prior).
-                spectral = spectral_symbol(wx, wy, across, **lowfreq_spectral)
+                # The image's own long-wave power tightens the prior (shading_prior), on the
+                # waves of fewer cycles than its table holds (0 on the others: not computed
+                # there, 1152 px level: 40 -> 1 ms).
+                limit = 2 * np.pi * (len(lowfreq_spectral["power"]) - 0.5) / lowfreq_spectral["side_px"]
+                ry, rx = np.flatnonzero(np.abs(wy[:, 0]) < limit), np.flatnonzero(np.abs(wx[0]) < limit)
+                spectral = np.zeros(lf.shape)
+                spectral[np.ix_(ry, rx)] = spectral_symbol(wx[:, rx], wy[ry], across[np.ix_(ry, rx)], **lowfreq_spectral)
                 lf = np.maximum(np.where(keep, lf, 0.0), spectral)
                 keep |= spectral > 0
             self._lf_ky = np.flatnonzero(keep.any(axis=1))
@@ -419,17 +456,38 @@ class _Problem:
             self.lf = np.where(keep, lf, 0.0).astype(_F)
             self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
             self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
+            # Or on block means: the kept waves are long, and the block means of the height
+            # carry them (see _lowfreq_block).
+            self._lf_block = _lowfreq_block(self.lf, self._lf_ky, self._lf_kx, (rows, cols))
             # The slopes of the least-squares plane through the data (data-weighted): a tilt
             # along the light is traded against the albedo, and on the periodic domain it
             # costs only its return in the margin, which the prior's few long waves hardly
             # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
-            self._plane = _plane_term(self.w, lowfreq_plane * mu) if lowfreq_plane > 0 else None
+            self._plane = None
+            if lowfreq_plane > 0 and self._lf_block is not None:
+                # On the block means, as the waves: the same energy for the blocks' plane
+                # (slopes per block b x those per pixel, weights summing to 1 / b² of them);
+                # the gradient spreads back over each block's b² pixels.
+                b = self._lf_block[0]
+                self._plane = _plane_term(cv2.resize(self.w, (cols // b, rows // b), interpolation=cv2.INTER_AREA),
+                                          lowfreq_plane * mu / (b * b))
+            elif lowfreq_plane > 0:
+                self._plane = _plane_term(self.w, lowfreq_plane * mu)
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
         waves that holds the kept ones, and the plane's rank-two term)."""
+        if self._lf_block is not None:
+            b, sym = self._lf_block
+            rows, cols = v.shape
+            means = cv2.resize(v, (cols // b, rows // b), interpolation=cv2.INTER_AREA)
+            out_b = sfft.irfft2(sfft.rfft2(means) * sym, s=means.shape).astype(_F, copy=False)
+            if self._plane is not None:
+                self._plane.add_to(means, out_b)
+            # b² P^T (P: the block means): each block's value on its b² pixels.
+            return cv2.resize(out_b, (cols, rows), interpolation=cv2.INTER_NEAREST)
         cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
         spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
         spec *= self._lf_sym

@@ -597,13 +597,16 @@ def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monke
     assert np.array_equal(results["bumps", default], results["bumps", np.inf])
 
 
-def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
+def test_low_frequency_prior_is_its_symbol_on_the_kept_waves(monkeypatch):
     # The prior is applied by a DFT restricted to the waves it keeps; it must equal the full
-    # FFT with the kept symbol (odd and even sides, light with both components).
+    # FFT with the kept symbol (odd and even sides, light with both components). On the pixels:
+    # block means are tested below.
     import scipy.fft as sfft
 
+    from haptex_compile import shading_variational
     from haptex_compile.shading_variational import _Problem
 
+    monkeypatch.setattr(shading_variational, "LOWFREQ_BLOCK", 1)
     rng = np.random.default_rng(3)
     # With the spectral prior too (shading_prior): more waves, up to 6 cycles.
     spectral = dict(albedo=0.8, side_px=130.0, data_pixels=130.0 * 70.0, weight=3e-4,
@@ -617,6 +620,41 @@ def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
         v = rng.standard_normal((rows, cols)).astype(np.float32)
         want = sfft.irfft2(sfft.rfft2(v) * prob.lf, s=(rows, cols))
         assert np.abs(prob.lowfreq(v) - want).max() <= 1e-5 * np.abs(want).max()
+
+
+def test_low_frequency_prior_on_block_means_keeps_its_waves():
+    # On a large level the prior works on b x b block means: the operator b² P^T L_b P (P: the
+    # block means). It is symmetric; on heights made of the kept waves, the block means of its
+    # result are those of the exact operator's (P R = I, and P maps each kept wave to the
+    # block grid's wave of the same cycles, attenuated by the same factor on both sides), and
+    # its energy is the exact one times that attenuation squared: sinc²(k b / n) >= 0.987 for
+    # the kept k <= n / (16 b).
+    import scipy.fft as sfft
+
+    from haptex_compile.shading_variational import _Problem
+
+    rng = np.random.default_rng(5)
+    spectral = dict(albedo=0.8, side_px=500.0, data_pixels=500.0 * 480.0, weight=3e-4,
+                    power=np.array([np.nan, 1.0, 1e-3, 1e-4, 1e-4, 1e-4, 1e-2]))
+    for (rows, cols), extra in (((576, 576), None), ((512, 640), spectral)):
+        img = rng.random((rows, cols)).astype(np.float32)
+        w = np.zeros((rows, cols), np.float32)
+        w[:500, :480] = 1.0
+        prob = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1,
+                        (0.64, 2 * np.pi / 500.0), lowfreq_spectral=extra, lowfreq_plane=0.1)
+        assert prob._lf_block is not None
+        b = prob._lf_block[0]
+        assert b >= 4
+        u, v = (sfft.irfft2(sfft.rfft2(rng.standard_normal((rows, cols))) * (prob.lf > 0), s=(rows, cols)).astype(np.float32)
+                for _ in range(2))
+        plane, prob._plane = prob._plane, None  # the waves alone (the plane: the next test)
+        got, want = prob.lowfreq(v), sfft.irfft2(sfft.rfft2(v) * prob.lf, s=(rows, cols))
+        means = (lambda a: a.reshape(rows // b, b, cols // b, b).mean(axis=(1, 3)))
+        assert np.abs(means(got) - means(want)).max() <= 1e-4 * np.abs(means(want)).max()
+        energy, exact = float(np.vdot(v, got)), float(np.vdot(v, want))
+        assert 0.985 * exact <= energy <= exact * (1 + 1e-5)
+        prob._plane = plane
+        assert abs(float(np.vdot(u, prob.lowfreq(v))) - float(np.vdot(v, prob.lowfreq(u)))) <= 1e-4 * energy
 
 
 def test_the_prior_charges_a_tilt_of_the_data_region_and_nothing_in_the_margin():
