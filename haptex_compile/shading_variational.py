@@ -467,9 +467,10 @@ class _Problem:
             # edge pixels, which then bend to meet it.)
             self._plane = None
             if lowfreq_plane > 0 and self._lf_block is not None:
-                # On the block means, as the waves: the same energy for the blocks' plane
-                # (slopes per block b x those per pixel, weights summing to 1 / b² of them);
-                # the gradient spreads back over each block's b² pixels.
+                # On the block means, as the waves: their plane's energy with the pixels'
+                # weight (slopes per block b x those per pixel, weights summing to 1 / b² of
+                # the pixels'); its gradient P^T ∇E is 1 / b² of what lowfreq's replication
+                # spreads, hence the weight / b².
                 b = self._lf_block[0]
                 self._plane = _plane_term(cv2.resize(self.w, (cols // b, rows // b), interpolation=cv2.INTER_AREA),
                                           lowfreq_plane * mu / (b * b))

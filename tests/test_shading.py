@@ -682,6 +682,30 @@ def test_the_prior_charges_a_tilt_of_the_data_region_and_nothing_in_the_margin()
             assert extra == pytest.approx(want, rel=1e-4)
 
 
+def test_on_block_means_the_prior_charges_the_same_tilt():
+    # On a large level the plane term works on the block means too: a tilt of the data region
+    # (its box made of whole blocks) costs the same weight x mu x N x |slope|² / 2, whatever
+    # the margin holds (blocks of margin carry no weight).
+    from haptex_compile.shading_variational import _Problem
+
+    rows, cols, data = 576, 480, (512, 448)
+    w = np.zeros((rows, cols), np.float32)
+    w[: data[0], : data[1]] = 1.0
+    img = np.full((rows, cols), 0.5, np.float32)
+    lowfreq = (0.64, 2 * np.pi / 512.0)
+    with_plane = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq, lowfreq_plane=0.1)
+    without = _Problem(img, w, Light(40.0, 200.0).vector, 1e-4, 1, lowfreq)
+    b = with_plane._lf_block[0]
+    assert b >= 4 and data[0] % b == 0 and data[1] % b == 0
+    yy, xx = np.mgrid[:rows, :cols].astype(np.float32)
+    off_data = np.where(w > 0, 0.0, np.random.default_rng(1).standard_normal((rows, cols))).astype(np.float32)
+    for sx, sy in ((0.3, 0.0), (0.0, -0.2), (0.1, 0.25)):
+        z = (sx * xx + sy * yy + 3.0) * w + off_data
+        extra = 0.5 * float(np.vdot(z, with_plane.lowfreq(z) - without.lowfreq(z)))
+        want = 0.5 * 0.1 * 0.64 * w.sum() * (sx * sx + sy * sy)
+        assert extra == pytest.approx(want, rel=1e-4)
+
+
 def test_the_plane_term_is_left_out_where_the_data_span_no_area():
     # A coarse level of a mostly shadowed or masked image may keep a few pixels in one
     # column: no plane through them (its moments are singular), and no error.
