@@ -345,6 +345,13 @@ def _lowfreq_block(lf: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[
     return b, sym
 
 
+def _block_means(a: np.ndarray, b: int) -> np.ndarray:
+    """Means of the b x b blocks of `a` (sides multiples of b; b = 1: `a` itself)."""
+    if b == 1:
+        return a
+    return cv2.resize(a, (a.shape[1] // b, a.shape[0] // b), interpolation=cv2.INTER_AREA)
+
+
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
     """The :class:`_PlaneTerm` of data weights `w`; None where the data span no area (a
     coarse level of a mostly masked or shadowed image: a few pixels in one row or column),
@@ -454,36 +461,33 @@ class _Problem:
             # The preconditioner sees the kept waves; the operator, the rectangle of rows and
             # columns that holds them (the rest of it below LOWFREQ_SUPPORT as well).
             self.lf = np.where(keep, lf, 0.0).astype(_F)
-            self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
-            self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
-            # Or on block means: the kept waves are long, and the block means of the height
-            # carry them (see _lowfreq_block).
+            # On block means where the level allows (the kept waves are long, and the block
+            # means of the height carry them: see _lowfreq_block), else on the rectangle.
             self._lf_block = _lowfreq_block(self.lf, self._lf_ky, self._lf_kx, (rows, cols))
+            if self._lf_block is None:
+                self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
+                self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
             # The slopes of the least-squares plane through the data (data-weighted): a tilt
             # along the light is traded against the albedo, and on the periodic domain it
             # costs only its return in the margin, which the prior's few long waves hardly
             # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
-            self._plane = None
-            if lowfreq_plane > 0 and self._lf_block is not None:
-                # On the block means, as the waves: their plane's energy with the pixels'
-                # weight (slopes per block b x those per pixel, weights summing to 1 / b² of
-                # the pixels'); its gradient P^T ∇E is 1 / b² of what lowfreq's replication
-                # spreads, hence the weight / b².
-                b = self._lf_block[0]
-                self._plane = _plane_term(cv2.resize(self.w, (cols // b, rows // b), interpolation=cv2.INTER_AREA),
-                                          lowfreq_plane * mu / (b * b))
-            elif lowfreq_plane > 0:
-                self._plane = _plane_term(self.w, lowfreq_plane * mu)
+            # With blocks, on the block means as the waves: their plane's energy with the
+            # pixels' weight (slopes per block b x those per pixel, weights summing to 1 / b²
+            # of the pixels'); its gradient P^T ∇E is 1 / b² of what lowfreq's replication
+            # spreads, hence the weight / b².
+            b = 1 if self._lf_block is None else self._lf_block[0]
+            self._plane = (_plane_term(_block_means(self.w, b), lowfreq_plane * mu / (b * b))
+                           if lowfreq_plane > 0 else None)
 
     def lowfreq(self, v):
-        """The low-frequency penalty's operator applied to `v` (its symbol on the rectangle of
-        waves that holds the kept ones, and the plane's rank-two term)."""
+        """The low-frequency penalty's operator applied to `v` (its symbol on the block means,
+        or on the rectangle of waves that holds the kept ones, and the plane's rank-two term)."""
         if self._lf_block is not None:
             b, sym = self._lf_block
             rows, cols = v.shape
-            means = cv2.resize(v, (cols // b, rows // b), interpolation=cv2.INTER_AREA)
+            means = _block_means(v, b)
             out_b = sfft.irfft2(sfft.rfft2(means) * sym, s=means.shape).astype(_F, copy=False)
             if self._plane is not None:
                 self._plane.add_to(means, out_b)
