@@ -156,6 +156,26 @@ SPECTRAL_PRIOR_WEIGHT = 3e-4
 # 0.01 worse; bench_shading's plain-image table within 0.01 of the baseline. Random bumps of
 # 1 Mpx at 45°: 1.82 -> 1.93 s (best of 3, same run), error 0.134 -> 0.130.
 LOWFREQ_PLANE_WEIGHT = 0.1
+# On the pyramid's quarter-resolution level and coarser ones, that plane is held (its weight x
+# COARSE_PLANE_FACTOR; see solve_variational's lowfreq_plane_coarse). Their fits came out
+# tilted along the light, and the finer levels spent their steps removing the tilt: random
+# bumps of 1 Mpx lit at 45° (light given) left the 288 px level with 2.7 x the true RMS
+# height, nearly all of it a plane sloping towards the light; the half-resolution level's
+# first Gauss-Newton step was 0.73 px RMS, 97 % of it in waves of at most 8 cycles (a tile's
+# first step there: 0.13 px, 38 %). With the plane held, that step is 0.20 px.
+# Measured against 1 (light given, one run): 90 random crops (bench_shading's) mean errors
+# plain weave 0.250 -> 0.235 (8 better by 0.01 or more, 2 worse), random bumps 0.2555 ->
+# 0.2544, sphere caps the same; bench_shading's 32 plain images and crops within 0.006 but
+# the Brownian ones (means 0.801 -> 0.789, 0.841 -> 0.847); 1 Mpx images of random bumps at
+# 15° / 45° 0.334 / 0.128 -> 0.298 / 0.125 (1.83 -> 1.50 s at 45°, best of 3; the other
+# three within 0.06 s), of the plain weave 0.230 / 0.091 -> 0.221 / 0.090. A factor of 1e4
+# gives the same within 0.005 but the weave's crops (0.240); from the eighth-resolution
+# level on, the bumps at 15° lose the gain (0.333). With the light estimated (bench_light's
+# 60 crops, bench_shading's 16 plain crops) and bench_photo's coarse lattices: the same
+# within 0.002 on average (bench_light: 27 estimates worse than the given light by more
+# than 5 points, against 26).
+COARSE_PLANE_FACTOR = 1000.0
+COARSE_PLANE_LEVEL = 2
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
 # The margin around a plain image, as a fraction of its longer side (at least 8 px).
@@ -1211,7 +1231,8 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
             data_shape=(rows, cols), lowfreq_weight=LOWFREQ_WEIGHT, lowfreq_cycles=LOWFREQ_CYCLES,
             lowfreq_check_level=check_level, lowfreq_reject_ratio=LOWFREQ_REJECT_RATIO,
             lowfreq_reject_albedo=LOWFREQ_REJECT_ALBEDO,
-            lowfreq_plane_weight=LOWFREQ_PLANE_WEIGHT,
+            lowfreq_plane_weight=LOWFREQ_PLANE_WEIGHT, lowfreq_plane_coarse=COARSE_PLANE_FACTOR,
+            lowfreq_plane_coarse_level=COARSE_PLANE_LEVEL,
         )
         if light is not None and light.slant_deg >= MIN_SLANT_DEG:
             power = along_light_power(np.where(valid, img, fill), light.vector, albedo,

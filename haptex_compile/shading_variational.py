@@ -967,6 +967,8 @@ def solve_variational(
     lowfreq_power: np.ndarray | None = None,
     lowfreq_power_weight: float = 0.0,
     lowfreq_plane_weight: float = 0.0,
+    lowfreq_plane_coarse: float = 1.0,
+    lowfreq_plane_coarse_level: int = 2,
     fit_min_level: int = 0,
     gradient_data: bool = False,
     bound_max_level: int = 0,
@@ -1061,6 +1063,12 @@ def solve_variational(
         With `lowfreq_weight`: also penalise the slopes (x and y) of the least-squares plane
         through the data region, ``lowfreq_plane_weight x lowfreq_weight x albedo² x N x
         |slope|² / 2`` on a level whose data weights sum to N (0 = off).
+    lowfreq_plane_coarse, lowfreq_plane_coarse_level : float, int
+        That weight is multiplied by `lowfreq_plane_coarse` on pyramid level
+        `lowfreq_plane_coarse_level` (0 = full resolution) and coarser ones: a large factor
+        holds the plane there. Coarse levels' fits of plain images came out tilted along the
+        light, which the finer levels then spent their steps removing (measured: see
+        ``shading.COARSE_PLANE_FACTOR``).
     albedo_projection : bool
         Eliminate the albedo from each Gauss-Newton step by variable projection (where it
         is fitted and not held at a bound): the step solves for the height with the albedo
@@ -1187,7 +1195,7 @@ def solve_variational(
         prob = _Problem(
             img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
-            lowfreq_plane=lowfreq_plane_weight,
+            lowfreq_plane=lowfreq_plane_weight * (lowfreq_plane_coarse if level >= lowfreq_plane_coarse_level else 1.0),
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])

@@ -706,6 +706,50 @@ def test_on_block_means_the_prior_charges_the_same_tilt():
         assert extra == pytest.approx(want, rel=1e-4)
 
 
+def test_coarse_levels_of_a_plain_image_hold_its_plane(monkeypatch):
+    # Random bumps of 512 px lit at 45° (light given), whose plane through the image slopes by
+    # 3e-4 px / px at a quarter of the resolution: with the plane term's usual weight the
+    # quarter-resolution level came out sloping 0.005 towards the light (18 x), which the
+    # finer levels then had to remove; with COARSE_PLANE_FACTOR the coarse levels hold it.
+    import haptex_compile.shading_variational as sv
+
+    default = shading.COARSE_PLANE_FACTOR
+    n, light = 512, Light(45.0, 200.0)
+    truth = ts.random_bumps((n, n), PX, seed=5)
+    img = render_lambertian(truth, PX, light, 0.8, periodic=False)
+    towards = light.vector[:2] / np.hypot(*light.vector[:2])
+
+    def plane_slope(z, w):  # the data-weighted least-squares plane's slope (px / px)
+        yy, xx = np.mgrid[: z.shape[0], : z.shape[1]]
+        m = w > 0
+        design = np.column_stack([np.ones(m.sum()), xx[m], yy[m]])
+        return np.linalg.lstsq(design, z[m], rcond=None)[0][1:]
+
+    quarter = truth.reshape(n // 4, 4, n // 4, 4).mean(axis=(1, 3)) / (4 * PX)
+    true_slope = float(np.hypot(*plane_slope(quarter, np.ones_like(quarter))))
+    assert true_slope < 5e-4
+
+    def slopes_along_light(factor):
+        monkeypatch.setattr(shading, "COARSE_PLANE_FACTOR", factor)
+        solve, found = sv._Problem.solve, {}
+
+        def spy(self, z, *args, **kwargs):
+            out = solve(self, z, *args, **kwargs)
+            if self.lf is not None:  # the solve with the prior (not its test without it)
+                found[self.shape[0]] = float(plane_slope(out[0], self.w) @ towards)
+            return out
+
+        monkeypatch.setattr(sv._Problem, "solve", spy)
+        shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False)
+        monkeypatch.setattr(sv._Problem, "solve", solve)
+        return found
+
+    usual = slopes_along_light(1.0)
+    assert usual[144] > 10 * true_slope
+    held = slopes_along_light(default)
+    assert max(abs(held[side]) for side in (144, 72, 36)) < true_slope
+
+
 def test_the_plane_term_is_left_out_where_the_data_span_no_area():
     # A coarse level of a mostly shadowed or masked image may keep a few pixels in one
     # column: no plane through them (its moments are singular), and no error.
