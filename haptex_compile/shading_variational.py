@@ -948,6 +948,8 @@ def solve_variational(
     *,
     lam: float = 1e-4,
     lam_growth: float = 8.0,
+    smooth_lam_growth: float | None = None,
+    smooth_ratio_max: float = 0.1,
     fit_albedo: bool = True,
     z0: np.ndarray | None = None,
     coarse_gn: int = 20,
@@ -1001,6 +1003,11 @@ def solve_variational(
         Thin-plate weight at full resolution (heights in pixel units).
     lam_growth : float
         Factor on `lam` per coarser level (continuation: smooth first, detail last).
+    smooth_lam_growth, smooth_ratio_max : float or None, float
+        On smooth shading (the half-resolution level's sub-pixel variance ratio, as for
+        `subgrid_damping`, at most `smooth_ratio_max`), the factor per level beyond the
+        half-resolution one instead of `lam_growth` (None = `lam_growth` on every level): a
+        weaker continuation on the coarse levels (see ``shading.LOW_SLANT_LAM_GROWTH``).
     fit_albedo : bool
         Refit the albedo by least squares after each accepted step.
     fit_min_level : int
@@ -1171,6 +1178,10 @@ def solve_variational(
         pyramid.append((*_downsample(img, w), _area_half(d), _area_half(b)))
         squares, _ = _downsample(squares, w)
         ratios.append(_subpixel_variance_ratio(pyramid[-1][0], squares, pyramid[-1][1]))
+    # The thin plate's weight on each level (continuation: smooth first, detail last).
+    level_lams = [lam * lam_growth**k for k in range(len(pyramid))]
+    if smooth_lam_growth is not None and len(ratios) > 1 and ratios[1] <= smooth_ratio_max:
+        level_lams = [lam * lam_growth**min(k, 1) * smooth_lam_growth**max(k - 1, 0) for k in range(len(pyramid))]
     z = None
     if z0 is not None:
         zf = z0.astype(_F)
@@ -1193,7 +1204,7 @@ def solve_variational(
                 spectral = dict(albedo=albedo, side_px=side, data_pixels=data_shape[0] * data_shape[1] * scale * scale,
                                 power=lowfreq_power, weight=lowfreq_power_weight)
         prob = _Problem(
-            img, w, light_vec, lam * lam_growth**level, workers, lowfreq, gradient_data, d, b,
+            img, w, light_vec, level_lams[level], workers, lowfreq, gradient_data, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
             lowfreq_plane=lowfreq_plane_weight * (lowfreq_plane_coarse if level >= lowfreq_plane_coarse_level else 1.0),
         )
