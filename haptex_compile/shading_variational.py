@@ -1178,10 +1178,11 @@ def solve_variational(
         pyramid.append((*_downsample(img, w), _area_half(d), _area_half(b)))
         squares, _ = _downsample(squares, w)
         ratios.append(_subpixel_variance_ratio(pyramid[-1][0], squares, pyramid[-1][1]))
-    # The thin plate's weight on each level (continuation: smooth first, detail last).
-    level_lams = [lam * lam_growth**k for k in range(len(pyramid))]
-    if smooth_lam_growth is not None and len(ratios) > 1 and ratios[1] <= smooth_ratio_max:
-        level_lams = [lam * lam_growth**min(k, 1) * smooth_lam_growth**max(k - 1, 0) for k in range(len(pyramid))]
+    # The thin plate's weight on each level (continuation: smooth first, detail last); beyond
+    # the half-resolution level it grows by `smooth_lam_growth` on smooth shading.
+    smooth = smooth_lam_growth is not None and len(ratios) > 1 and ratios[1] <= smooth_ratio_max
+    beyond = smooth_lam_growth if smooth else lam_growth
+    level_lams = [lam * lam_growth**min(k, 1) * beyond**max(k - 1, 0) for k in range(len(pyramid))]
     z = None
     if z0 is not None:
         zf = z0.astype(_F)
