@@ -225,7 +225,7 @@ ALBEDO_SLACK = 1.1
 # full step gains less than 0.03 % (not 0.1 %): with both, the sphere cap at 60° (light
 # given) a320 +30 % -> +16 %, height error 0.021 -> 0.016 (estimated light: +23 % -> +11 %);
 # Brownian at 30° 0.044 -> 0.036, at 75° 0.199 -> 0.172; the other bench cases within 0.002.
-# Tiles lit at low slant (up to LOW_SLANT_MAX_DEG) with smooth shading: the thin plate's
+# Images lit at low slant (up to LOW_SLANT_MAX_DEG) with smooth shading: the thin plate's
 # weight grows by LOW_SLANT_LAM_GROWTH per level beyond the half-resolution one, not 8
 # (solve_variational's smooth_lam_growth; smooth: that level's sub-pixel variance ratio at
 # most 0.1, which leaves out the Brownian surfaces' 0.26-0.32). At 15°, starting from the
@@ -243,6 +243,15 @@ ALBEDO_SLACK = 1.1
 # 0.050). Fewer pyramid levels or the fine starts do not help (0.38-0.82). A growth of 4 on
 # every level: 15° worst 0.187, but the Brownian tiles 0.17-0.04 -> 0.23-0.06 without the
 # ratio test, and 1 Mpx 1.01 -> 1.14 s (one more step at half resolution).
+# The same holds for plain images and for the accurate method (same harness, one run each,
+# against the growth of 8 there). Accurate tiles: 15° mean 0.162 -> 0.014, worst 0.381 ->
+# 0.059; the bench's tiles, noisy images, steep lights, lattices and 7 Brownian seeds at 15°
+# unchanged. Plain images of the same 10 seeds at 15° (256 px): mean 0.274 -> 0.243, worst
+# 0.339 -> 0.314; 1 Mpx random bumps at 15° (seeds 5, 2) 0.298 / 0.324 -> 0.244 / 0.191,
+# the plain weave 0.221 -> 0.152, at 10° bumps 0.72 -> 0.58, weave 0.282 -> 0.145, sphere
+# caps within 0.001, 0-8 % more time (one more step at half resolution); bench_shading's
+# plain images and random crops within 0.005 on average (bumps 0.254 -> 0.249, weave 0.235 ->
+# 0.239); light estimated on bench_light's 60 crops, 5 better by 0.03-0.09, none worse.
 LOW_SLANT_LAM_GROWTH = 2.0
 LOW_SLANT_MAX_DEG = 20.0
 DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=3e-4, albedo_projection=True,
@@ -1458,8 +1467,8 @@ def shape_from_shading(
         kwargs.update(ACCURATE_SOLVER)
     elif z0 is None:
         kwargs.update(DEFAULT_SOLVER if periodic else {**DEFAULT_SOLVER, **PLAIN_SOLVER})
-        if periodic and light.slant_deg <= LOW_SLANT_MAX_DEG:
-            kwargs.update(smooth_lam_growth=LOW_SLANT_LAM_GROWTH)
+    if z0 is None and light.slant_deg <= LOW_SLANT_MAX_DEG:
+        kwargs.update(smooth_lam_growth=LOW_SLANT_LAM_GROWTH)
     kwargs.update(domain_kwargs)
     albedo_start = albedo
     weight = dom_w.astype(np.float32)
