@@ -249,7 +249,7 @@ ALBEDO_SLACK = 1.1
 # unchanged. Plain images of the same 10 seeds at 15° (256 px): mean 0.274 -> 0.243, worst
 # 0.339 -> 0.314; 1 Mpx random bumps at 15° (seeds 5, 2) 0.298 / 0.324 -> 0.244 / 0.191,
 # the plain weave 0.221 -> 0.152, at 10° bumps 0.72 -> 0.58, weave 0.282 -> 0.145, sphere
-# caps within 0.001, 0-8 % more time (one more step at half resolution); bench_shading's
+# caps within 0.001, 0-8 % more time (one run, 1.8-2.2 s); bench_shading's
 # plain images and random crops within 0.005 on average (bumps 0.254 -> 0.249, weave 0.235 ->
 # 0.239); light estimated on bench_light's 60 crops, 5 better by 0.03-0.09, none worse.
 LOW_SLANT_LAM_GROWTH = 2.0

@@ -715,7 +715,7 @@ def test_low_slant_random_bumps_meet_the_target(monkeypatch, periodic, method, t
     # truth has a height error of 0.007, and the solvers used to settle in another one from
     # their heavily smoothed coarse levels: tile 0.381 with either method, plain image 0.339
     # (above the 30 % for random bumps). With the weaker continuation at low slants:
-    # tile 0.205 (default) and 0.009 (accurate), plain image 0.255 (its edges limit it).
+    # tile 0.205 (default) and 0.009 (accurate), plain image 0.255.
     truth = ts.random_bumps((256, 256), PX, seed=2)
     light = Light(15.0, 30.0)
     img = render_lambertian(truth, PX, light, 0.8, periodic=periodic)
