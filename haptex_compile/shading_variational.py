@@ -58,6 +58,7 @@ import scipy.fft as sfft
 import cv2
 
 from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
+from haptex_compile.shading_kernels import cg_direction_rows, cg_update_rows, jacobian_rows, normal_rows
 from haptex_compile.shading_prior import spectral_symbol
 
 _F = np.float32
@@ -696,12 +697,15 @@ class _Problem:
             b = -grad
         lam = self.lam
         wx, wy = (self.wx, self.wy) if grad_data else (None, None)
-        jv, t1, t2 = (np.empty(z.shape, _F) for _ in range(3))
+        jv = np.empty(z.shape, _F)
+        t1 = np.empty(z.shape, _F) if grad_data else None
         vp = None  # (u, s) of the variable projection, when it applies
 
+        lam32, shift32 = _F(lam), _F(1e-6)
+
         def matvec(v):
-            out = _lap2(v, lam, 1e-6)
             if grad_data:
+                out = _lap2(v, lam, 1e-6)
                 np.multiply(_dx2(v, jv), ha, out=jv)
                 jv_ = jv + np.multiply(_dy2(v, t1), hb, out=t1)
                 jv_ = _fxt(wx * _fx(jv_)) + _fyt(wy * _fy(jv_))
@@ -709,26 +713,16 @@ class _Problem:
                 data += _dy2(hb * jv_)
                 out -= data
             else:
-                def jacobian(rows):  # J v on these rows, times the weights of D^T's two terms
-                    j = jv[rows]
-                    np.multiply(_dx2(v[rows], j), ha[rows], out=j)
-                    j += np.multiply(_dy2_rows(v, rows, tb), hb[rows], out=tb[rows])
-                    np.multiply(j, nwa[rows], out=t1[rows])
-                    np.multiply(j, nwb[rows], out=t2[rows])
-
-                # The projection's rank-one term joins the row blocks unless a low-frequency
-                # penalty comes first (the order of the sums is that of one thread).
+                # J v, then the thin plate, D^T of J v's weighted terms and the projection's
+                # rank-one term, in two compiled passes (shading_kernels). The rank-one term
+                # joins them unless a low-frequency penalty comes first (the order of the sums
+                # is that of one thread).
+                out = np.empty_like(v)
                 c_vp = None if vp is None or self.lf is not None else float(np.vdot(vp[0], v)) / vp[1]
-
-                def transpose(rows):  # D^T of those, added to the thin-plate term
-                    o = out[rows]
-                    o += _dx2(t1[rows], tb[rows])
-                    o += _dy2_rows(t2, rows, tb)
-                    if c_vp is not None:
-                        o -= np.multiply(vp[0][rows], c_vp, out=tb[rows])
-
-                _run_rows(jacobian, blocks)
-                _run_rows(transpose, blocks)
+                u, cu = (v, _F(0.0)) if c_vp is None else (vp[0], _F(c_vp))
+                _run_rows(lambda rows: jacobian_rows(v, ha, hb, jv, rows.start, rows.stop), blocks)
+                _run_rows(lambda rows: normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out,
+                                                   rows.start, rows.stop), blocks)
             if self.lf is not None:
                 out += self.lowfreq(v)
             if vp is not None and (grad_data or self.lf is not None):
@@ -750,6 +744,7 @@ class _Problem:
         d = zz.copy()
         rz = float(np.vdot(rr, zz))
         b_norm = float(np.sqrt(np.vdot(b, b))) or 1.0
+        row_sq = np.empty(z.shape[0])  # sums of rr² by row (see cg_update_rows)
         for _ in range(max_cg):
             ad = matvec(d)
             dad = float(np.vdot(d, ad))
@@ -757,24 +752,16 @@ class _Problem:
                 break
             alpha = rz / dad
 
-            def update(rows):  # x += alpha d, rr -= alpha A d
-                x[rows] += np.multiply(d[rows], alpha, out=tb[rows])
-                rr[rows] -= np.multiply(ad[rows], alpha, out=tb[rows])
-
-            _run_rows(update, blocks)
-            if float(np.sqrt(np.vdot(rr, rr))) < tol * b_norm:
+            a32 = _F(alpha)
+            _run_rows(lambda rows: cg_update_rows(x, rr, d, ad, a32, row_sq, rows.start, rows.stop), blocks)
+            if float(np.sqrt(row_sq.sum())) < tol * b_norm:
                 break
             zz = self.apply_pre(inv_sym, rr)
             rz_new = float(np.vdot(rr, zz))
             if not rz_new > 0:  # nothing left that the preconditioner lets through
                 break
-            beta = rz_new / rz
-
-            def direction(rows):  # d = beta d + zz
-                d[rows] *= beta
-                d[rows] += zz[rows]
-
-            _run_rows(direction, blocks)
+            b32 = _F(rz_new / rz)
+            _run_rows(lambda rows: cg_direction_rows(d, zz, b32, rows.start, rows.stop), blocks)
             rz = rz_new
         if previous:
             x = _subspace_minimum([x, *previous], [b - rr, *map(matvec, previous)], b)
