@@ -17,6 +17,7 @@ import numpy as np
 
 # float32 constants: a Python int or float would promote the sums to float64.
 _F20, _F8, _F2 = np.float32(20.0), np.float32(8.0), np.float32(2.0)
+_HALF, _ONE = np.float32(0.5), np.float32(1.0)
 
 
 # Numba checks every signed index for wrap-around (a negative index counts from the end), which
@@ -117,3 +118,92 @@ def cg_direction_rows(d, zz, beta, r0, r1):
         di, zi = d[i], zz[i]
         for c in range(m):
             di[c] = beta * di[c] + zi[c]
+
+
+@numba.njit(inline="always")
+def _reflectance_pixel(p, q, lx, ly, lz, k, cx, cy):
+    """R(p, q) and its partial derivatives (float32) for the unit light (lx, ly, lz), the
+    squared slope across the light (the unit direction (cx, cy)) weighted by 1 - k in the
+    normalisation ``sqrt(1 + p² + q²)`` (k = 0: the exact reflectance)."""
+    pc = cx * p + cy * q
+    g = _ONE + p * p + q * q - k * pc * pc
+    gp = p - k * cx * pc
+    gq = q - k * cy * pc
+    inv = _ONE / np.sqrt(g)
+    num = lz - p * lx - q * ly
+    inv3 = inv / g
+    return num * inv, -lx * inv - num * gp * inv3, -ly * inv - num * gq * inv3
+
+
+@numba.njit(inline="always")
+def _half_differences(zc, zu, zd, p, q):
+    """Halved periodic central differences of a row `zc` (into `p`) and between the rows
+    below and above it (into `q`)."""
+    m = zc.shape[0]
+    for c in range(m):
+        q[c] = (zu[c] - zd[c]) * _HALF
+    p[0] = (zc[1 % m] - zc[m - 1]) * _HALF
+    p[m - 1] = (zc[0] - zc[(m - 2) % m]) * _HALF
+    if m > 2:
+        zp, zm, pc = zc[2:], zc[:m - 2], p[1:m - 1]
+        for c in range(m - 2):
+            pc[c] = (zp[c] - zm[c]) * _HALF
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"reassoc"})
+def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, across, albedo,
+                  dark_level, bright_level, project, r, fa, fb, ha, hb, nwa, nwb, ua, ub, sums, r0, r1):
+    """Rows ``r0:r1`` of a Gauss-Newton step's pixel terms at heights `z` (pixel units): the
+    reflectance `r` (see :func:`_reflectance_pixel` for `light`, `k` and `across`), the
+    gradient's factors ``fa, fb = J * W res`` (J = albedo x R's partial derivatives; W res
+    with the one-sided terms of the `dark` and `bright` weights where `has_dark`,
+    `has_bright`, else those arrays are not read), the Jacobian's halves ``ha, hb`` and
+    ``nwa, nwb`` = minus them times the active weights (for :func:`normal_rows`), with
+    `project` the variable projection's ``ua, ub = J * w r`` (else not written); and by row,
+    into ``sums[i]`` (float64), the sums of ``w rp²``, ``w rp rq``, ``w rq²`` and ``w r²``.
+    Scalars are float32 (`has_*`, `project`: bool)."""
+    n, m = z.shape
+    lx, ly, lz = light[0], light[1], light[2]
+    cx, cy = across[0], across[1]
+    p, q = np.empty(m, np.float32), np.empty(m, np.float32)
+    zero = np.float32(0.0)
+    for i in range(r0, r1):
+        _half_differences(z[i], z[(i + 1) % n], z[(i - 1) % n], p, q)
+        imr, wr, dkr, btr, rr, far, fbr = img[i], w[i], dark[i], bright[i], r[i], fa[i], fb[i]
+        har, hbr, nwar, nwbr, uar, ubr = ha[i], hb[i], nwa[i], nwb[i], ua[i], ub[i]
+        s0 = s1 = s2 = s3 = 0.0
+        for c in range(m):
+            rv, rp, rq = _reflectance_pixel(p[c], q[c], lx, ly, lz, k, cx, cy)
+            rr[c] = rv
+            im = imr[c]
+            res = albedo * rv - im
+            ja, jb = albedo * rp, albedo * rq
+            w0 = wr[c]
+            wres, wact = w0 * res, w0
+            if has_dark:
+                cr = max(res + im - dark_level, zero)
+                wres += dkr[c] * cr
+                wact += dkr[c] * np.float32(cr != zero)
+            if has_bright:
+                cr = min(res + im - bright_level, zero)
+                wres += btr[c] * cr
+                wact += btr[c] * np.float32(cr != zero)
+            far[c] = ja * wres
+            fbr[c] = jb * wres
+            h_a, h_b = ja * _HALF, jb * _HALF
+            har[c] = h_a
+            hbr[c] = h_b
+            nwar[c] = -(wact * h_a)
+            nwbr[c] = -(wact * h_b)
+            wrv = w0 * rv
+            if project:
+                uar[c] = ja * wrv
+                ubr[c] = jb * wrv
+            s0 += w0 * rp * rp
+            s1 += w0 * rp * rq
+            s2 += w0 * rq * rq
+            s3 += wrv * rv
+        sums[i, 0] = s0
+        sums[i, 1] = s1
+        sums[i, 2] = s2
+        sums[i, 3] = s3

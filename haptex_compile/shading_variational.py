@@ -58,7 +58,7 @@ import scipy.fft as sfft
 import cv2
 
 from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
-from haptex_compile.shading_kernels import cg_direction_rows, cg_update_rows, jacobian_rows, normal_rows
+from haptex_compile.shading_kernels import cg_direction_rows, cg_update_rows, gn_setup_rows, jacobian_rows, normal_rows
 from haptex_compile.shading_prior import spectral_symbol
 
 _F = np.float32
@@ -639,16 +639,28 @@ class _Problem:
         the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
         grad_data = self.grad_data
         blocks = self.blocks(z.shape[0])
-        r, ha, hb, nwa, nwb, fa, fb, grad, b, tb, wr = (np.empty(z.shape, _F) for _ in range(11))
-        sums = [np.empty(z.shape, _F) for _ in range(3)]  # w rp², w rp rq, w rq² (preconditioner)
+        r, ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(10))
+        # By row: the sums of w rp², w rp rq, w rq² (the preconditioner's tensor) and w r².
+        row_sums = np.empty((z.shape[0], 4))
         project = self.project_albedo and self._albedo_free(albedo)
         ua, ub, u = (np.empty(z.shape, _F) for _ in range(3)) if project else (None, None, None)
         lam_l2 = self.lam * _lap2(z)
+        across = _across(self.light) or (0.0, 0.0)
+        fixed = (np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F), _F(albedo),
+                 _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project)
 
         def pixelwise(rows):
             # Reflectance, residual, Jacobian (halves of the central differences folded into
             # the coefficients, the sign of D^T = -D into the data weights), the gradient's
             # and the projection's factors, and the preconditioner's tensor.
+            if not grad_data:
+                gn_setup_rows(z, self.img, self.w, self.w if self.dark is None else self.dark,
+                              self.w if self.bright is None else self.bright, self.dark is not None,
+                              self.bright is not None, *fixed, r, fa, fb, ha, hb, nwa, nwb,
+                              fa if ua is None else ua, fb if ub is None else ub, row_sums,
+                              rows.start, rows.stop)
+                return
+            # Gradient data (one block of rows): in numpy.
             p = _dx(z[rows])
             q = _dy2_rows(z, rows, tb)
             q *= 0.5
@@ -663,14 +675,13 @@ class _Problem:
             np.multiply(jb, 0.5, out=hb[rows])
             np.negative(np.multiply(w, ha[rows], out=nwa[rows]), out=nwa[rows])
             np.negative(np.multiply(w, hb[rows], out=nwb[rows]), out=nwb[rows])
-            w0 = self.w[rows]
-            wr_ = np.multiply(w0, r_, out=wr[rows])
+            wr_ = self.w * r_
             if project:
-                np.multiply(ja, wr_, out=ua[rows])
-                np.multiply(jb, wr_, out=ub[rows])
-            np.multiply(np.multiply(w0, rp_, out=sums[0][rows]), rp_, out=sums[0][rows])
-            np.multiply(np.multiply(w0, rp_, out=sums[1][rows]), rq_, out=sums[1][rows])
-            np.multiply(np.multiply(w0, rq_, out=sums[2][rows]), rq_, out=sums[2][rows])
+                np.multiply(ja, wr_, out=ua)
+                np.multiply(jb, wr_, out=ub)
+            w_rp, w_rq = self.w * rp_, self.w * rq_
+            for k, t in enumerate((w_rp * rp_, w_rp * rq_, w_rq * rq_, wr_ * r_)):
+                row_sums[:, k] = t.sum(axis=1)
 
         def minus_divergence(f1, f2, rows, out):
             # -(D_x f1 + D_y f2) on these rows into out's (periodic central differences)
@@ -729,7 +740,8 @@ class _Problem:
                 out -= vp[0] * (float(np.vdot(vp[0], v)) / vp[1])
             return out
 
-        s_vp = float(np.vdot(wr, r))
+        totals = row_sums.sum(axis=0)
+        s_vp = float(totals[3])
         if project and s_vp > 0:
             # Variable projection (Golub-Pereyra): the albedo, refitted after every step, is
             # eliminated, so the step solves the Schur complement J^T W J - u u^T / s of the
@@ -737,7 +749,7 @@ class _Problem:
             # one step may trade slope against albedo, which alternating steps do slowly.
             vp = (u, s_vp)
 
-        inv_sym = self.precond([float(np.sum(t)) for t in sums], albedo)
+        inv_sym = self.precond([float(t) for t in totals[:3]], albedo)
         x = np.zeros_like(b)
         rr = b.copy()
         zz = self.apply_pre(inv_sym, rr)
