@@ -1,4 +1,5 @@
-"""Compiled (numba) kernels of the shape-from-shading solver's conjugate-gradient operator.
+"""Compiled (numba) kernels of the shape-from-shading solver's per-pixel work: a Gauss-Newton
+step's pixel terms, the conjugate-gradient operator and the CG vector updates.
 
 The Gauss-Newton system's operator, ``A v = J^T W J v + lam L^T L v + shift v`` (periodic
 central differences for J, the 13-point biharmonic for ``L^T L``), was a chain of a dozen numpy
@@ -6,8 +7,14 @@ passes over the image, each reading and writing whole arrays; it cost more than 
 preconditioner. Here it is two passes: the Jacobian's product ``J v``, then the rest, each
 pixel's sum computed once from its neighbours. The kernels work on a block of rows (periodic
 neighbours from the whole array) and release the GIL, so the solver's row-block threads run
-them side by side; a pixel's value does not depend on the blocks, so results are the same on
-any number of threads.
+them side by side; a pixel's value does not depend on the blocks, and sums are returned by
+row (in float64), so results are the same on any number of threads. Kernels with such sums
+let LLVM reassociate them (``fastmath={"reassoc"}``) so that the loops vectorise: the order of
+a row's sum then follows the CPU's vector width, not the threads.
+
+Compiled on first use and cached (``cache=True``, next to this file or in numba's user cache
+directory): measured here, the first solve of a fresh install took 2.8 s longer, the first of
+a later process 0.4 s.
 """
 
 from __future__ import annotations

@@ -69,9 +69,10 @@ SUBGRID_DAMPING = 2.0
 # faster on one: measured, a 2-thread FFT of 128 x 128 costs more) and also run each
 # Gauss-Newton step's elementwise work (reflectance, gradient, the CG matvec and vector
 # updates, the line search's energy) on `workers` threads, each on a block of rows: numpy
-# releases the GIL on large arrays. The operations and their order are those of one thread
-# (sums over the image stay whole), so the results are identical (at 256 x 256 px the
-# threads cost more than they gain: a 256 px solve 66 -> 103 ms).
+# and the compiled kernels (shading_kernels) release the GIL. A pixel's value does not
+# depend on the blocks, and sums over the image are whole or summed by row, so the results
+# are identical on any number of threads (at 256 x 256 px the threads cost more than they
+# gain: a 256 px solve 66 -> 103 ms).
 PARALLEL_FFT_MIN_PIXELS = 1 << 18
 # Waves whose low-frequency penalty is below this fraction of its peak are left out of it.
 LOWFREQ_SUPPORT = 1e-6
@@ -646,8 +647,8 @@ class _Problem:
         ua, ub, u = (np.empty(z.shape, _F) for _ in range(3)) if project else (None, None, None)
         lam_l2 = self.lam * _lap2(z)
         across = _across(self.light) or (0.0, 0.0)
-        fixed = (np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F), _F(albedo),
-                 _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project)
+        setup_args = (np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F),
+                      _F(albedo), _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project)
 
         def pixelwise(rows):
             # Reflectance, residual, Jacobian (halves of the central differences folded into
@@ -656,7 +657,7 @@ class _Problem:
             if not grad_data:
                 gn_setup_rows(z, self.img, self.w, self.w if self.dark is None else self.dark,
                               self.w if self.bright is None else self.bright, self.dark is not None,
-                              self.bright is not None, *fixed, r, fa, fb, ha, hb, nwa, nwb,
+                              self.bright is not None, *setup_args, r, fa, fb, ha, hb, nwa, nwb,
                               fa if ua is None else ua, fb if ub is None else ub, row_sums,
                               rows.start, rows.stop)
                 return
@@ -725,9 +726,8 @@ class _Problem:
                 out -= data
             else:
                 # J v, then the thin plate, D^T of J v's weighted terms and the projection's
-                # rank-one term, in two compiled passes (shading_kernels). The rank-one term
-                # joins them unless a low-frequency penalty comes first (the order of the sums
-                # is that of one thread).
+                # rank-one term, in two compiled passes (shading_kernels); with a
+                # low-frequency penalty, the rank-one term follows it, below.
                 out = np.empty_like(v)
                 c_vp = None if vp is None or self.lf is not None else float(np.vdot(vp[0], v)) / vp[1]
                 u, cu = (v, _F(0.0)) if c_vp is None else (vp[0], _F(c_vp))
