@@ -12,15 +12,36 @@ row (in float64), so results are the same on any number of threads. Kernels with
 let LLVM reassociate them (``fastmath={"reassoc"}``) so that the loops vectorise: the order of
 a row's sum then follows the CPU's vector width, not the threads.
 
-Compiled on first use and cached (``cache=True``, next to this file or in numba's user cache
-directory): measured here, the first solve of a fresh install took 2.8 s longer, the first of
-a later process 0.4 s.
+Compiled on first use and cached (next to this file or in numba's user cache directory; see
+:func:`_kernel` where neither is writable): measured here, the first solve of a fresh install
+took 2.8 s longer, the first of a later process 0.4 s.
 """
 
 from __future__ import annotations
 
+import logging
+
 import numba
 import numpy as np
+
+LOG = logging.getLogger("haptex.shading")
+_UNCACHED: list[str] = []  # kernels compiled without a cache (no writable cache directory)
+
+
+def _kernel(**options):
+    """``numba.njit(nogil=True, cache=True, **options)``; where numba finds no writable cache
+    directory (a read-only install and no writable home), it refuses ``cache=True`` at import,
+    and the kernel is then compiled on each run instead (about 3 s for all of them)."""
+    def decorate(fn):
+        try:
+            return numba.njit(nogil=True, cache=True, **options)(fn)
+        except RuntimeError:  # "cannot cache function ...: no locator available"
+            if not _UNCACHED:
+                LOG.warning("numba has no writable cache directory: the shape-from-shading kernels"
+                            " are compiled on each run (about 3 s); set NUMBA_CACHE_DIR to keep them")
+            _UNCACHED.append(fn.__name__)
+            return numba.njit(nogil=True, **options)(fn)
+    return decorate
 
 # float32 constants: a Python int or float would promote the sums to float64.
 _F20, _F8, _F2 = np.float32(20.0), np.float32(8.0), np.float32(2.0)
@@ -33,7 +54,7 @@ _HALF, _ONE = np.float32(0.5), np.float32(1.0)
 # 3.7 -> 0.9 ms). Edge columns, whose neighbours wrap, are done one by one.
 
 
-@numba.njit(nogil=True, cache=True)
+@_kernel()
 def jacobian_rows(v, ha, hb, out, r0, r1):
     """Rows ``r0:r1`` of ``ha * (v[:, j+1] - v[:, j-1]) + hb * (v[i+1] - v[i-1])`` (periodic)
     into `out`: the Jacobian's product with `v`, its halves folded into `ha`, `hb`."""
@@ -60,7 +81,7 @@ def _normal_cell(v0, vu1, vu2, vd1, vd2, j0, ju, jd, a0, bu, bd, lam, shift, c, 
             + (ju[c] * bu[c] - jd[c] * bd[c]))
 
 
-@numba.njit(nogil=True, cache=True)
+@_kernel()
 def normal_rows(v, jv, nwa, nwb, lam, shift, u, cu, out, r0, r1):
     """Rows ``r0:r1`` of ``lam * biharmonic(v) + shift * v + Dx(jv * nwa) + Dy(jv * nwb)
     - cu * u`` into `out` (periodic; ``Dx f = f[:, j+1] - f[:, j-1]``, likewise Dy): with
@@ -100,7 +121,7 @@ def normal_rows(v, jv, nwa, nwb, lam, shift, u, cu, out, r0, r1):
                 o[c] -= cu * ur[c]
 
 
-@numba.njit(nogil=True, cache=True, fastmath={"reassoc"})
+@_kernel(fastmath={"reassoc"})
 def cg_update_rows(x, rr, d, ad, alpha, row_sq, r0, r1):
     """Rows ``r0:r1`` of the conjugate-gradient update ``x += alpha d``, ``rr -= alpha ad``;
     ``row_sq[i]`` = the sum of the new ``rr[i]²`` (float64; summed by row, so the total is
@@ -117,7 +138,7 @@ def cg_update_rows(x, rr, d, ad, alpha, row_sq, r0, r1):
         row_sq[i] = s
 
 
-@numba.njit(nogil=True, cache=True)
+@_kernel()
 def cg_direction_rows(d, zz, beta, r0, r1):
     """Rows ``r0:r1`` of the conjugate-gradient direction ``d = beta d + zz``."""
     m = d.shape[1]
@@ -157,7 +178,7 @@ def _half_differences(zc, zu, zd, p, q):
             pc[c] = (zp[c] - zm[c]) * _HALF
 
 
-@numba.njit(nogil=True, cache=True, fastmath={"reassoc"})
+@_kernel(fastmath={"reassoc"})
 def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, across, albedo,
                   dark_level, bright_level, project, r, fa, fb, ha, hb, nwa, nwb, ua, ub, sums, r0, r1):
     """Rows ``r0:r1`` of a Gauss-Newton step's pixel terms at heights `z` (pixel units): the

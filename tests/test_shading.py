@@ -243,6 +243,38 @@ def test_compiled_operator_is_the_composition_of_its_differences():
             np.testing.assert_allclose(out, want, rtol=0, atol=1e-5 * scale, err_msg=str((shape, parts)))
 
 
+def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
+    # A read-only install with no writable home: numba refuses cache=True when the kernel is
+    # defined ("no locator available"); the kernel must still work, compiled uncached, with one
+    # warning that says so.
+    import logging
+
+    import numba.core.dispatcher
+
+    from haptex_compile import shading_kernels
+
+    def refuse(self):
+        raise RuntimeError(f"cannot cache function {self.py_func.__name__!r}: no locator available for file 'x'")
+
+    monkeypatch.setattr(numba.core.dispatcher.Dispatcher, "enable_caching", refuse)
+    monkeypatch.setattr(shading_kernels, "_UNCACHED", [])
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+
+    def row_sums(a, out, r0, r1):
+        for i in range(r0, r1):
+            out[i] = a[i].sum()
+
+    with caplog.at_level(logging.WARNING, logger="haptex.shading"):
+        kernel = shading_kernels._kernel()(row_sums)
+        shading_kernels._kernel()(row_sums)
+    a = np.arange(12.0).reshape(3, 4)
+    out = np.zeros(3)
+    kernel(a, out, 0, 3)
+    np.testing.assert_array_equal(out, a.sum(axis=1))
+    assert shading_kernels._UNCACHED == ["row_sums", "row_sums"]
+    assert len([r for r in caplog.records if "NUMBA_CACHE_DIR" in r.getMessage()]) == 1
+
+
 def test_threaded_levels_give_identical_heights():
     # A level of 512 x 512 px runs its Gauss-Newton steps' elementwise work on two threads,
     # in blocks of rows, in the single thread's order: the heights must be bit-identical.
