@@ -1006,8 +1006,8 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
 
 
 def _swept_tilt(coarse, slant: float, tilt: float) -> float | None:
-    """A tilt far from the search's whose coarse misfit at `slant` (the first knee) is well
-    below the statistical `tilt`'s, or None.
+    """A tilt whose coarse misfit at `slant` (the first knee) is well below the statistical
+    `tilt`'s, or None.
 
     The statistical tilt assumes an isotropic surface; a lattice relief's own anisotropy can
     turn it far from the light (measured: 59° on a plain weave of 47 px cells), beyond the

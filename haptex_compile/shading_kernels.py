@@ -72,13 +72,15 @@ def jacobian_rows(v, ha, hb, out, r0, r1):
 
 
 @numba.njit(inline="always")
-def _normal_cell(v0, vu1, vu2, vd1, vd2, j0, ju, jd, a0, bu, bd, lam, shift, c, cp, cm, cp2, cm2):
-    """One pixel of :func:`normal_rows` from its rows and column indices (edge columns)."""
-    bih = (_F20 * v0[c] - _F8 * (v0[cp] + v0[cm] + vu1[c] + vd1[c])
-           + _F2 * (vu1[cp] + vu1[cm] + vd1[cp] + vd1[cm])
-           + (v0[cp2] + v0[cm2] + vu2[c] + vd2[c]))
-    return (lam * bih + shift * v0[c] + (j0[cp] * a0[cp] - j0[cm] * a0[cm])
-            + (ju[c] * bu[c] - jd[c] * bd[c]))
+def _operator_value(v0, v_r, v_l, v_u, v_d, v_ur, v_ul, v_dr, v_dl, v_rr, v_ll, v_uu, v_dd,
+                    ja_r, ja_l, jb_u, jb_d, lam, shift):
+    """One pixel of :func:`normal_rows` from `v` at it and its neighbours (r, l: columns
+    c ± 1; u, d: rows i ± 1; doubled: ± 2) and the weighted Jacobian products ``jv * nwa`` at
+    columns c ± 1 (`ja_*`) and ``jv * nwb`` at rows i ± 1 (`jb_*`). Scalars only: arrays
+    passed per pixel would be reference-counted per pixel."""
+    bih = (_F20 * v0 - _F8 * (v_r + v_l + v_u + v_d) + _F2 * (v_ur + v_ul + v_dr + v_dl)
+           + (v_rr + v_ll + v_uu + v_dd))
+    return lam * bih + shift * v0 + (ja_r - ja_l) + (jb_u - jb_d)
 
 
 @_kernel()
@@ -97,8 +99,10 @@ def normal_rows(v, jv, nwa, nwb, lam, shift, u, cu, out, r0, r1):
         o = out[i]
         for e in range(min(m, 4)):  # the edge columns, with wrapped neighbours
             c = e if e < 2 or m < 4 else m - 4 + e
-            o[c] = _normal_cell(v0, vu1, vu2, vd1, vd2, j0, ju, jd, a0, bu, bd, lam, shift,
-                                c, (c + 1) % m, (c - 1) % m, (c + 2) % m, (c - 2) % m)
+            cp, cm, cp2, cm2 = (c + 1) % m, (c - 1) % m, (c + 2) % m, (c - 2) % m
+            o[c] = _operator_value(v0[c], v0[cp], v0[cm], vu1[c], vd1[c], vu1[cp], vu1[cm], vd1[cp], vd1[cm],
+                                   v0[cp2], v0[cm2], vu2[c], vd2[c], j0[cp] * a0[cp], j0[cm] * a0[cm],
+                                   ju[c] * bu[c], jd[c] * bd[c], lam, shift)
         if m > 4:
             # Column offsets -2..2 as slices of the interior, all indexed by c >= 0.
             w = m - 4
@@ -110,11 +114,9 @@ def normal_rows(v, jv, nwa, nwb, lam, shift, u, cu, out, r0, r1):
             juc, jdc, buc, bdc = ju[2:w + 2], jd[2:w + 2], bu[2:w + 2], bd[2:w + 2]
             oc = o[2:w + 2]
             for c in range(w):
-                bih = (_F20 * vc[c] - _F8 * (vp1[c] + vm1[c] + u1c[c] + d1c[c])
-                       + _F2 * (u1p[c] + u1m[c] + d1p[c] + d1m[c])
-                       + (vp2[c] + vm2[c] + u2c[c] + d2c[c]))
-                oc[c] = (lam * bih + shift * vc[c] + (jp[c] * ap[c] - jm[c] * am[c])
-                         + (juc[c] * buc[c] - jdc[c] * bdc[c]))
+                oc[c] = _operator_value(vc[c], vp1[c], vm1[c], u1c[c], d1c[c], u1p[c], u1m[c], d1p[c], d1m[c],
+                                        vp2[c], vm2[c], u2c[c], d2c[c], jp[c] * ap[c], jm[c] * am[c],
+                                        juc[c] * buc[c], jdc[c] * bdc[c], lam, shift)
         if cu != 0:
             ur = u[i]
             for c in range(m):

@@ -646,20 +646,23 @@ class _Problem:
         project = self.project_albedo and self._albedo_free(albedo)
         ua, ub, u = (np.empty(z.shape, _F) for _ in range(3)) if project else (None, None, None)
         lam_l2 = self.lam * _lap2(z)
+        # gn_setup_rows's inputs and outputs (arrays it does not read or write stand in for
+        # absent censored weights and projection factors).
         across = _across(self.light) or (0.0, 0.0)
-        setup_args = (np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F),
-                      _F(albedo), _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project)
+        setup_args = (
+            z, self.img, self.w, self.w if self.dark is None else self.dark,
+            self.w if self.bright is None else self.bright, self.dark is not None, self.bright is not None,
+            np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F), _F(albedo),
+            _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project, r, fa, fb, ha, hb, nwa, nwb,
+            fa if ua is None else ua, fb if ub is None else ub, row_sums,
+        )
 
         def pixelwise(rows):
             # Reflectance, residual, Jacobian (halves of the central differences folded into
             # the coefficients, the sign of D^T = -D into the data weights), the gradient's
             # and the projection's factors, and the preconditioner's tensor.
             if not grad_data:
-                gn_setup_rows(z, self.img, self.w, self.w if self.dark is None else self.dark,
-                              self.w if self.bright is None else self.bright, self.dark is not None,
-                              self.bright is not None, *setup_args, r, fa, fb, ha, hb, nwa, nwb,
-                              fa if ua is None else ua, fb if ub is None else ub, row_sums,
-                              rows.start, rows.stop)
+                gn_setup_rows(*setup_args, rows.start, rows.stop)
                 return
             # Gradient data (one block of rows): in numpy.
             p = _dx(z[rows])
@@ -676,13 +679,14 @@ class _Problem:
             np.multiply(jb, 0.5, out=hb[rows])
             np.negative(np.multiply(w, ha[rows], out=nwa[rows]), out=nwa[rows])
             np.negative(np.multiply(w, hb[rows], out=nwb[rows]), out=nwb[rows])
-            wr_ = self.w * r_
+            w0 = self.w[rows]
+            wr_ = w0 * r_
             if project:
-                np.multiply(ja, wr_, out=ua)
-                np.multiply(jb, wr_, out=ub)
-            w_rp, w_rq = self.w * rp_, self.w * rq_
+                np.multiply(ja, wr_, out=ua[rows])
+                np.multiply(jb, wr_, out=ub[rows])
+            w_rp, w_rq = w0 * rp_, w0 * rq_
             for k, t in enumerate((w_rp * rp_, w_rp * rq_, w_rq * rq_, wr_ * r_)):
-                row_sums[:, k] = t.sum(axis=1)
+                row_sums[rows, k] = t.sum(axis=1)
 
         def minus_divergence(f1, f2, rows, out):
             # -(D_x f1 + D_y f2) on these rows into out's (periodic central differences)
