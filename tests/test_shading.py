@@ -416,6 +416,38 @@ def test_gauss_newton_stops_once_a_full_step_gains_little(bumps128, monkeypatch)
     assert result[1e-3][1] == pytest.approx(result[0.0][1], rel=0.01)
 
 
+def test_the_finest_level_starts_from_an_albedo_within_its_bounds(bumps128, monkeypatch):
+    # Lambertian shading never exceeds the albedo, so the finest level holds it at or above
+    # its brightest pixels; the half-resolution level, whose averaged image is darker,
+    # hands down a lower one at 15° (measured: 0.7986 against 0.7998). Its first step is then
+    # solved at the albedo it will not keep: the default starts from the bound instead.
+    from haptex_compile import shading_variational as sv
+
+    light = Light(15.0, 30.0)
+    img = render_lambertian(bumps128, PX, light, 0.8, periodic=True).astype(np.float32)
+    w = np.ones_like(img)
+    step = sv._Problem.gn_step
+    firsts = {}
+
+    for bound in (False, True):
+        seen = []
+
+        def recorded(self, z, albedo, *args, **kwargs):
+            if z.shape == img.shape:
+                seen.append((albedo, self.albedo_min))
+            return step(self, z, albedo, *args, **kwargs)
+
+        monkeypatch.setattr(sv._Problem, "gn_step", recorded)
+        z, albedo = sv.solve_variational(img, w, light.vector, 0.8,
+                                         **{**shading.DEFAULT_SOLVER, "bound_start_albedo": bound})
+        firsts[bound] = (*seen[0], sv.energy(img, w, light.vector, albedo, z))
+    start, low, _ = firsts[False]
+    assert start < low  # the case arises
+    start, low, energy = firsts[True]
+    assert start >= low >= np.percentile(img, 99.9) - 0.01
+    assert energy <= firsts[False][2]
+
+
 @pytest.mark.parametrize("slant, tilt", [(15.0, 30.0), (30.0, 120.0), (45.0, 200.0)])
 def test_default_sphere_cap_feels_like_the_true_one(surfaces256, slant, tilt):
     # The tactile target (mean a40 and a320 within 20 %) on the smooth sphere cap, whose
