@@ -164,38 +164,6 @@ def _dy(z: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fx(e: np.ndarray) -> np.ndarray:
-    """Periodic forward difference along x: e[j+1] - e[j]."""
-    out = np.empty_like(e)
-    np.subtract(e[:, 1:], e[:, :-1], out=out[:, :-1])
-    np.subtract(e[:, 0], e[:, -1], out=out[:, -1])
-    return out
-
-
-def _fxt(u: np.ndarray) -> np.ndarray:
-    """Transpose of :func:`_fx`: u[j-1] - u[j]."""
-    out = np.empty_like(u)
-    np.subtract(u[:, :-1], u[:, 1:], out=out[:, 1:])
-    np.subtract(u[:, -1], u[:, 0], out=out[:, 0])
-    return out
-
-
-def _fy(e: np.ndarray) -> np.ndarray:
-    """Periodic forward difference along y."""
-    out = np.empty_like(e)
-    np.subtract(e[1:], e[:-1], out=out[:-1])
-    np.subtract(e[0], e[-1], out=out[-1])
-    return out
-
-
-def _fyt(u: np.ndarray) -> np.ndarray:
-    """Transpose of :func:`_fy`."""
-    out = np.empty_like(u)
-    np.subtract(u[:-1], u[1:], out=out[1:])
-    np.subtract(u[-1], u[0], out=out[0])
-    return out
-
-
 _BIHARMONIC = np.array(
     [[0, 0, 1, 0, 0], [0, 2, -8, 2, 0], [1, -8, 20, -8, 1], [0, 2, -8, 2, 0], [0, 0, 1, 0, 0]],
     dtype=np.float32,
@@ -379,8 +347,7 @@ def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
-    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, gradient_data=False,
-                 dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None,
+    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None,
                  lowfreq_plane=0.0):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
@@ -389,12 +356,6 @@ class _Problem:
         # light), saturated ones that albedo R >= BRIGHT_LEVEL. One-sided terms.
         self.dark = None if dark is None or not np.any(dark > 0) else dark.astype(_F)
         self.bright = None if bright is None or not np.any(bright > 0) else bright.astype(_F)
-        if gradient_data:
-            self.dark = self.bright = None
-        # Gradient data: compare the differences of neighbouring pixels (both valid) rather
-        # than the intensities, so that a uniform brightness error (albedo, ambient light)
-        # cannot be explained by uniform roughness.
-        self.grad_data = gradient_data
         # Lambertian shading never exceeds the albedo: the brightest valid pixels bound it
         # from below (a high percentile, so that a few noisy pixels do not set it; less
         # `bound_noise_sigmas` times the image noise, which raises a high percentile). Levels
@@ -409,10 +370,6 @@ class _Problem:
         self.project_albedo = False
         # Hold the waves with no slope along the light (see solve_variational's hold_from_level).
         self.hold_across_waves = False
-        if gradient_data:
-            w = self.w
-            self.wx = w * np.roll(w, -1, axis=1)
-            self.wy = w * np.roll(w, -1, axis=0)
         self.light = np.asarray(light, dtype=float)
         self.lam = float(lam)
         # Weight of the squared slope across the light in R's normalisation (1 = exact R).
@@ -425,7 +382,6 @@ class _Problem:
         self.sx = np.sin(wx).astype(_F)
         self.sy = np.sin(wy).astype(_F)
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
-        self.nlap = (4 - 2 * np.cos(wx) - 2 * np.cos(wy)).astype(_F)
         self.shape = (rows, cols)
         # Optional penalty on slopes at wavelengths longer than the data region (non-periodic
         # images: a ramp or bowl across the image is otherwise nearly free, traded against
@@ -506,11 +462,6 @@ class _Problem:
             self._plane.add_to(v, out)
         return out
 
-    def gradient_data_energy(self, res):
-        """Data energy of gradient data (intensity data: see :meth:`energy`)."""
-        rx, ry = _fx(res), _fy(res)
-        return 0.5 * float(np.sum(self.wx * rx * rx) + np.sum(self.wy * ry * ry))
-
     def censored_terms(self, model, rows=slice(None)):
         """(weight, residual) of the one-sided terms of the censored pixels at `model` (the
         image's `rows`)."""
@@ -521,54 +472,31 @@ class _Problem:
             out.append((self.bright[rows], np.minimum(model - BRIGHT_LEVEL, 0.0)))
         return out
 
-    def data_weights(self, res, rows=slice(None)):
-        """Gradient of the data energy with respect to the model image, and the Gauss-Newton
-        weight of each pixel (censored terms count where they are active); `res` is the
-        residual on the image's `rows` (all of them for gradient data)."""
-        w = self.w[rows]
-        if self.grad_data or (self.dark is None and self.bright is None):
-            return self.gradient_data_grad(res) if self.grad_data else w * res, w
-        wres = w * res
-        w_act = w.copy()
-        for c_w, c_r in self.censored_terms(res + self.img[rows], rows):
-            wres += c_w * c_r
-            w_act += c_w * (c_r != 0)
-        return wres, w_act
-
-    def gradient_data_grad(self, res):
-        """Derivative of the gradient data's energy with respect to the residual image."""
-        return _fxt(self.wx * _fx(res)) + _fyt(self.wy * _fy(res))
-
     def blocks(self, rows: int) -> list[slice]:
-        """Row blocks of the elementwise work, one per thread (one block: a single thread;
-        gradient data are not split)."""
-        return _row_blocks(rows, 1 if self.grad_data else self.workers)
+        """Row blocks of the elementwise work, one per thread."""
+        return _row_blocks(rows, self.workers)
 
     def energy(self, z, albedo, r=None):
         """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
         if r is None:
             r = self.reflectance(z)
-        if self.grad_data:
-            res = albedo * r - self.img
-            e = self.gradient_data_energy(res) + 0.5 * self.lam * float(np.sum(_lap(z) ** 2))
-        else:
-            # The terms' pixel values in row blocks, each summed over the whole image (sums
-            # whole: the same value on any number of threads).
-            n_censored = (self.dark is not None) + (self.bright is not None)
-            terms = [np.empty(z.shape, _F) for _ in range(2 + n_censored)]
+        # The terms' pixel values in row blocks, each summed over the whole image (sums
+        # whole: the same value on any number of threads).
+        n_censored = (self.dark is not None) + (self.bright is not None)
+        terms = [np.empty(z.shape, _F) for _ in range(2 + n_censored)]
 
-            def pixelwise(rows):
-                res = albedo * r[rows] - self.img[rows]
-                np.multiply(np.multiply(self.w[rows], res, out=terms[0][rows]), res, out=terms[0][rows])
-                for k, (c_w, c_r) in enumerate(self.censored_terms(res + self.img[rows], rows)):
-                    np.multiply(np.multiply(c_w, c_r, out=terms[2 + k][rows]), c_r, out=terms[2 + k][rows])
-                np.square(_lap_rows(z, rows, terms[1]), out=terms[1][rows])
+        def pixelwise(rows):
+            res = albedo * r[rows] - self.img[rows]
+            np.multiply(np.multiply(self.w[rows], res, out=terms[0][rows]), res, out=terms[0][rows])
+            for k, (c_w, c_r) in enumerate(self.censored_terms(res + self.img[rows], rows)):
+                np.multiply(np.multiply(c_w, c_r, out=terms[2 + k][rows]), c_r, out=terms[2 + k][rows])
+            np.square(_lap_rows(z, rows, terms[1]), out=terms[1][rows])
 
-            _run_rows(pixelwise, self.blocks(z.shape[0]))
-            e = 0.5 * float(np.sum(terms[0]))
-            for t in terms[2:]:
-                e += 0.5 * float(np.sum(t))
-            e += 0.5 * self.lam * float(np.sum(terms[1]))
+        _run_rows(pixelwise, self.blocks(z.shape[0]))
+        e = 0.5 * float(np.sum(terms[0]))
+        for t in terms[2:]:
+            e += 0.5 * float(np.sum(t))
+        e += 0.5 * self.lam * float(np.sum(terms[1]))
         if self.lf is not None:
             e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
         return e
@@ -612,8 +540,6 @@ class _Problem:
         txx, txy, tyy = (t / wsum * wm for t in sums)
         a2 = albedo * albedo
         sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
-        if self.grad_data:
-            sym = sym * self.nlap
         sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
         if self.lf is not None:
             sym = sym + self.lf
@@ -638,7 +564,6 @@ class _Problem:
     def gn_step(self, z, albedo, max_cg, tol, previous=()):
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
         the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
-        grad_data = self.grad_data
         blocks = self.blocks(z.shape[0])
         r, ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(10))
         # By row: the sums of w rp², w rp rq, w rq² (the preconditioner's tensor) and w r².
@@ -656,37 +581,6 @@ class _Problem:
             _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project, r, fa, fb, ha, hb, nwa, nwb,
             fa if ua is None else ua, fb if ub is None else ub, row_sums,
         )
-
-        def pixelwise(rows):
-            # Reflectance, residual, Jacobian (halves of the central differences folded into
-            # the coefficients, the sign of D^T = -D into the data weights), the gradient's
-            # and the projection's factors, and the preconditioner's tensor.
-            if not grad_data:
-                gn_setup_rows(*setup_args, rows.start, rows.stop)
-                return
-            # Gradient data (one block of rows): in numpy.
-            p = _dx(z[rows])
-            q = _dy2_rows(z, rows, tb)
-            q *= 0.5
-            r_, rp_, rq_ = _reflectance(p, q, self.light, self.across_weight)
-            r[rows] = r_
-            res = albedo * r_ - self.img[rows]
-            ja, jb = albedo * rp_, albedo * rq_
-            wres, w = self.data_weights(res, rows)
-            np.multiply(ja, wres, out=fa[rows])
-            np.multiply(jb, wres, out=fb[rows])
-            np.multiply(ja, 0.5, out=ha[rows])
-            np.multiply(jb, 0.5, out=hb[rows])
-            np.negative(np.multiply(w, ha[rows], out=nwa[rows]), out=nwa[rows])
-            np.negative(np.multiply(w, hb[rows], out=nwb[rows]), out=nwb[rows])
-            w0 = self.w[rows]
-            wr_ = w0 * r_
-            if project:
-                np.multiply(ja, wr_, out=ua[rows])
-                np.multiply(jb, wr_, out=ub[rows])
-            w_rp, w_rq = w0 * rp_, w0 * rq_
-            for k, t in enumerate((w_rp * rp_, w_rp * rq_, w_rq * rq_, wr_ * r_)):
-                row_sums[rows, k] = t.sum(axis=1)
 
         def minus_divergence(f1, f2, rows, out):
             # -(D_x f1 + D_y f2) on these rows into out's (periodic central differences)
@@ -706,42 +600,33 @@ class _Problem:
             if project:
                 minus_divergence(ua, ub, rows, u)
 
-        _run_rows(pixelwise, blocks)
+        # Reflectance, residual, Jacobian (halves of the central differences folded into the
+        # coefficients, the sign of D^T = -D into the data weights), the gradient's and the
+        # projection's factors, and the preconditioner's tensor; then the gradient.
+        _run_rows(lambda rows: gn_setup_rows(*setup_args, rows.start, rows.stop), blocks)
         _run_rows(gradient, blocks)
         if self.lf is not None:
             grad = grad + self.lowfreq(z)
             b = -grad
-        lam = self.lam
-        wx, wy = (self.wx, self.wy) if grad_data else (None, None)
         jv = np.empty(z.shape, _F)
-        t1 = np.empty(z.shape, _F) if grad_data else None
         vp = None  # (u, s) of the variable projection, when it applies
 
-        lam32, shift32 = _F(lam), _F(1e-6)
+        lam32, shift32 = _F(self.lam), _F(1e-6)
 
         def matvec(v):
-            if grad_data:
-                out = _lap2(v, lam, 1e-6)
-                np.multiply(_dx2(v, jv), ha, out=jv)
-                jv_ = jv + np.multiply(_dy2(v, t1), hb, out=t1)
-                jv_ = _fxt(wx * _fx(jv_)) + _fyt(wy * _fy(jv_))
-                data = _dx2(ha * jv_)
-                data += _dy2(hb * jv_)
-                out -= data
-            else:
-                # J v, then the thin plate, D^T of J v's weighted terms and the projection's
-                # rank-one term, in two compiled passes (shading_kernels); with a
-                # low-frequency penalty, the rank-one term follows it, below.
-                out = np.empty_like(v)
-                c_vp = None if vp is None or self.lf is not None else float(np.vdot(vp[0], v)) / vp[1]
-                u, cu = (v, _F(0.0)) if c_vp is None else (vp[0], _F(c_vp))
-                _run_rows(lambda rows: jacobian_rows(v, ha, hb, jv, rows.start, rows.stop), blocks)
-                _run_rows(lambda rows: normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out,
-                                                   rows.start, rows.stop), blocks)
+            # J v, then the thin plate, D^T of J v's weighted terms and the projection's
+            # rank-one term, in two compiled passes (shading_kernels); with a
+            # low-frequency penalty, the rank-one term follows it, below.
+            out = np.empty_like(v)
+            c_vp = None if vp is None or self.lf is not None else float(np.vdot(vp[0], v)) / vp[1]
+            u, cu = (v, _F(0.0)) if c_vp is None else (vp[0], _F(c_vp))
+            _run_rows(lambda rows: jacobian_rows(v, ha, hb, jv, rows.start, rows.stop), blocks)
+            _run_rows(lambda rows: normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out,
+                                               rows.start, rows.stop), blocks)
             if self.lf is not None:
                 out += self.lowfreq(v)
-            if vp is not None and (grad_data or self.lf is not None):
-                out -= vp[0] * (float(np.vdot(vp[0], v)) / vp[1])
+                if vp is not None:
+                    out -= vp[0] * (float(np.vdot(vp[0], v)) / vp[1])
             return out
 
         totals = row_sums.sum(axis=0)
@@ -826,8 +711,6 @@ class _Problem:
     def fit_albedo(self, z, albedo, r=None):
         if r is None:
             r = self.reflectance(z)
-        if self.grad_data:  # the albedo only scales the slopes: nothing to fit
-            return albedo, self.energy(z, albedo, r)
         w = self.w
         wrr, wri = np.empty(z.shape, _F), np.empty(z.shape, _F)
 
@@ -979,7 +862,6 @@ def solve_variational(
     lowfreq_plane_coarse: float = 1.0,
     lowfreq_plane_coarse_level: int = 2,
     fit_min_level: int = 0,
-    gradient_data: bool = False,
     bound_max_level: int = 0,
     albedo_max: float = 1e3,
     dark: np.ndarray | None = None,
@@ -1022,11 +904,6 @@ def solve_variational(
         Refit the albedo only on this level and coarser ones (0 = all); the finer levels keep
         it. With missing data (masked pixels, the margin of a non-periodic image) the albedo
         trades against free height offsets between characteristic strips.
-    gradient_data : bool
-        Compare differences of neighbouring pixels instead of intensities (insensitive to a
-        uniform brightness error, albedo not fitted). Experimental: measured worse on the
-        bench surfaces (bumps 0.19-0.39 instead of 0.07-0.16), kept for real photos with
-        ambient light.
     bound_max_level : int
         Apply the albedo's lower bound on this level and finer ones only (averaging makes
         the coarse images darker than the coarse surface's shading).
@@ -1224,13 +1101,13 @@ def solve_variational(
                 spectral = dict(albedo=albedo, side_px=side, data_pixels=data_shape[0] * data_shape[1] * scale * scale,
                                 power=lowfreq_power, weight=lowfreq_power_weight)
         prob = _Problem(
-            img, w, light_vec, level_lams[level], workers, lowfreq, gradient_data, d, b,
+            img, w, light_vec, level_lams[level], workers, lowfreq, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
             lowfreq_plane=lowfreq_plane_weight * (lowfreq_plane_coarse if level >= lowfreq_plane_coarse_level else 1.0),
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
-        prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level and not gradient_data
+        prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level
         prob.project_albedo &= projection_levels is None or level in projection_levels
         prob.project_albedo &= ratios[level] <= projection_max_ratio
         prob.hold_across_waves = hold_from_level is not None and level >= hold_from_level
