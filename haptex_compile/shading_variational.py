@@ -58,7 +58,10 @@ import scipy.fft as sfft
 import cv2
 
 from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
-from haptex_compile.shading_kernels import cg_direction_rows, cg_update_rows, gn_setup_rows, jacobian_rows, normal_rows
+from haptex_compile.shading_kernels import (
+    albedo_sums_rows, cg_direction_rows, cg_update_rows, energy_rows, gn_setup_rows, jacobian_rows, normal_rows,
+    reflectance_rows,
+)
 from haptex_compile.shading_prior import spectral_symbol
 
 _F = np.float32
@@ -215,31 +218,6 @@ def _lap_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
 def _lap(z: np.ndarray) -> np.ndarray:
     """Periodic 5-point Laplacian."""
     return _lap_rows(z, slice(0, z.shape[0]), np.empty_like(z))
-
-
-def _reflectance(p, q, light, across_weight=1.0):
-    """R(p, q) and its partial derivatives for a unit light (lx, ly, lz).
-
-    `across_weight` < 1 scales the squared slope across the light in the normalisation
-    ``sqrt(1 + p² + q²)`` (the coarse levels' damping, see :func:`solve_variational`).
-    """
-    lx, ly, lz = (float(c) for c in light)
-    g = 1.0 + p * p + q * q
-    gp, gq = p, q
-    across = _across(light) if across_weight != 1.0 else None
-    if across is not None:
-        cx, cy = across
-        pc = cx * p + cy * q
-        g = g - (1.0 - across_weight) * pc * pc
-        gp = p - (1.0 - across_weight) * cx * pc
-        gq = q - (1.0 - across_weight) * cy * pc
-    inv = 1.0 / np.sqrt(g)
-    num = lz - p * lx - q * ly
-    r = num * inv
-    inv3 = inv / g
-    rp = -lx * inv - num * gp * inv3
-    rq = -ly * inv - num * gq * inv3
-    return r, rp, rq
 
 
 def _across(light) -> tuple[float, float] | None:
@@ -462,16 +440,6 @@ class _Problem:
             self._plane.add_to(v, out)
         return out
 
-    def censored_terms(self, model, rows=slice(None)):
-        """(weight, residual) of the one-sided terms of the censored pixels at `model` (the
-        image's `rows`)."""
-        out = []
-        if self.dark is not None:
-            out.append((self.dark[rows], np.maximum(model - DARK_LEVEL, 0.0)))
-        if self.bright is not None:
-            out.append((self.bright[rows], np.minimum(model - BRIGHT_LEVEL, 0.0)))
-        return out
-
     def blocks(self, rows: int) -> list[slice]:
         """Row blocks of the elementwise work, one per thread."""
         return _row_blocks(rows, self.workers)
@@ -480,53 +448,28 @@ class _Problem:
         """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
         if r is None:
             r = self.reflectance(z)
-        # The terms' pixel values in row blocks, each summed over the whole image (sums
-        # whole: the same value on any number of threads).
-        n_censored = (self.dark is not None) + (self.bright is not None)
-        terms = [np.empty(z.shape, _F) for _ in range(2 + n_censored)]
-
-        def pixelwise(rows):
-            res = albedo * r[rows] - self.img[rows]
-            np.multiply(np.multiply(self.w[rows], res, out=terms[0][rows]), res, out=terms[0][rows])
-            for k, (c_w, c_r) in enumerate(self.censored_terms(res + self.img[rows], rows)):
-                np.multiply(np.multiply(c_w, c_r, out=terms[2 + k][rows]), c_r, out=terms[2 + k][rows])
-            np.square(_lap_rows(z, rows, terms[1]), out=terms[1][rows])
-
-        _run_rows(pixelwise, self.blocks(z.shape[0]))
-        e = 0.5 * float(np.sum(terms[0]))
-        for t in terms[2:]:
-            e += 0.5 * float(np.sum(t))
-        e += 0.5 * self.lam * float(np.sum(terms[1]))
+        # By row: w res², the censored pixels' one-sided terms and the thin plate's squared
+        # Laplacian (row sums: the same total on any number of threads).
+        sums = np.empty((z.shape[0], 3))
+        args = (z, r, self.img, self.w, self.w if self.dark is None else self.dark,
+                self.w if self.bright is None else self.bright, self.dark is not None, self.bright is not None,
+                _F(albedo), _F(DARK_LEVEL), _F(BRIGHT_LEVEL), sums)
+        _run_rows(lambda rows: energy_rows(*args, rows.start, rows.stop), self.blocks(z.shape[0]))
+        data, censored, thin_plate = sums.sum(axis=0)
+        e = 0.5 * float(data) + 0.5 * float(censored) + 0.5 * self.lam * float(thin_plate)
         if self.lf is not None:
             e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
         return e
 
     def reflectance(self, z):
+        """The reflectance (albedo 1) of heights `z` (pixel units), with this level's damping
+        of the squared slope across the light."""
         out = np.empty(z.shape, _F)
-        tmp = np.empty(z.shape, _F)
-        lx, ly, lz = (float(c) for c in self.light)
-
-        def rows_of(rows):
-            if self.across_weight != 1.0:
-                q = _dy2_rows(z, rows, tmp)
-                q *= 0.5
-                out[rows] = _reflectance(_dx(z[rows]), q, self.light, self.across_weight)[0]
-                return
-            p = _dx2(z[rows])
-            q = _dy2_rows(z, rows, tmp)
-            # R = (lz - p lx - q ly) / sqrt(1 + p² + q²) with p, q the halved differences.
-            num = lx * p
-            num += ly * q
-            num *= 0.5
-            np.subtract(lz, num, out=num)
-            g = p * p
-            g += q * q
-            g *= 0.25
-            g += 1.0
-            np.sqrt(g, out=g)
-            np.divide(num, g, out=out[rows])
-
-        _run_rows(rows_of, self.blocks(z.shape[0]))
+        light = np.asarray(self.light, _F)
+        k = _F(1.0 - self.across_weight)
+        across = np.asarray(_across(self.light) or (0.0, 0.0), _F)
+        _run_rows(lambda rows: reflectance_rows(z, light, k, across, out, rows.start, rows.stop),
+                  self.blocks(z.shape[0]))
         return out
 
     def precond(self, sums, albedo):
@@ -711,18 +654,12 @@ class _Problem:
     def fit_albedo(self, z, albedo, r=None):
         if r is None:
             r = self.reflectance(z)
-        w = self.w
-        wrr, wri = np.empty(z.shape, _F), np.empty(z.shape, _F)
-
-        def pixelwise(rows):
-            wr = w[rows] * r[rows]
-            np.multiply(wr, r[rows], out=wrr[rows])
-            np.multiply(wr, self.img[rows], out=wri[rows])
-
-        _run_rows(pixelwise, self.blocks(z.shape[0]))
-        den = float(np.sum(wrr))
+        sums = np.empty((z.shape[0], 2))  # by row: w r², w r img
+        _run_rows(lambda rows: albedo_sums_rows(r, self.img, self.w, sums, rows.start, rows.stop),
+                  self.blocks(z.shape[0]))
+        den, num = (float(t) for t in sums.sum(axis=0))
         if den > 0:
-            a = float(np.sum(wri)) / den
+            a = num / den
             if np.isfinite(a) and a > 0:
                 albedo = self.bounded_albedo(a)
         return albedo, self.energy(z, albedo, r)

@@ -154,7 +154,7 @@ def test_albedo_projection_step_is_the_joint_gauss_newton_step():
     # Variable projection: with the albedo at its least-squares value, the projected step
     # must equal the height part of the joint (height, albedo) Gauss-Newton step, solved
     # here densely in float64; the plain step is the fixed-albedo one.
-    from haptex_compile.shading_variational import _Problem, _dx, _dy, _lap2, _reflectance
+    from haptex_compile.shading_variational import _Problem, _dx, _dy, _lap2
 
     n = 12
     h = ts.random_bumps((n, n), PX, seed=4)
@@ -169,7 +169,11 @@ def test_albedo_projection_step_is_the_joint_gauss_newton_step():
     dx = np.stack([_dx(e).ravel() for e in eye], axis=1)
     dy = np.stack([_dy(e).ravel() for e in eye], axis=1)
     lap2 = np.stack([_lap2(e).ravel() for e in eye], axis=1)
-    r, rp, rq = (a.astype(float).ravel() for a in _reflectance(_dx(z), _dy(z), light.vector))
+    p, q = _dx(z).astype(float).ravel(), _dy(z).astype(float).ravel()
+    lx, ly, lz = light.vector
+    g = 1.0 + p * p + q * q  # R = (lz - p lx - q ly) / sqrt(g), and its derivatives
+    r = (lz - p * lx - q * ly) / np.sqrt(g)
+    rp, rq = -lx / np.sqrt(g) - r * p / g, -ly / np.sqrt(g) - r * q / g
     jz = albedo * (rp[:, None] * dx + rq[:, None] * dy)
     hess = jz.T @ jz + prob.lam * lap2 + 1e-6 * np.eye(n * n)
     res = albedo * r - img.ravel()
@@ -206,6 +210,22 @@ def test_row_blocks_of_the_periodic_differences_make_the_whole():
                 np.testing.assert_array_equal(out, whole)
 
 
+# Reference periodic differences for the compiled kernels, by np.roll (a[i + k] along an axis).
+def _roll_dx2(a):
+    return np.roll(a, -1, axis=1) - np.roll(a, 1, axis=1)
+
+
+def _roll_dy2(a):
+    return np.roll(a, -1, axis=0) - np.roll(a, 1, axis=0)
+
+
+def _roll_lap(a):
+    return sum(np.roll(a, k, axis=ax) for k in (1, -1) for ax in (0, 1)) - 4 * a
+
+
+KERNEL_SHAPES = ((1, 1), (2, 3), (3, 4), (5, 5), (6, 2), (7, 9), (16, 33))
+
+
 def test_compiled_operator_is_the_composition_of_its_differences():
     # The CG operator's two compiled passes against the numpy operators they fuse: thin plate
     # (the 5-point Laplacian twice) + shift + D^T of the weighted Jacobian product + a rank-one
@@ -213,19 +233,8 @@ def test_compiled_operator_is_the_composition_of_its_differences():
     from haptex_compile.shading_kernels import jacobian_rows, normal_rows
     from haptex_compile.shading_variational import _row_blocks
 
-    def shift_by(a, k, axis):
-        return np.roll(a, -k, axis=axis)  # a[i + k] along `axis`, periodic
-
-    def _dx2(a):
-        return shift_by(a, 1, 1) - shift_by(a, -1, 1)
-
-    def _dy2(a):
-        return shift_by(a, 1, 0) - shift_by(a, -1, 0)
-
-    def _lap(a):
-        return sum(shift_by(a, k, ax) for k in (1, -1) for ax in (0, 1)) - 4 * a
-
-    for shape in ((1, 1), (2, 3), (3, 4), (5, 5), (6, 2), (7, 9), (16, 33)):
+    _dx2, _dy2, _lap = _roll_dx2, _roll_dy2, _roll_lap
+    for shape in KERNEL_SHAPES:
         rng = np.random.default_rng(shape[0] * 100 + shape[1])
         v, ha, hb, nwa, nwb, u = (rng.standard_normal(shape).astype(np.float32) for _ in range(6))
         lam, shift, cu = np.float32(0.3), np.float32(1e-3), np.float32(0.7)
@@ -241,6 +250,50 @@ def test_compiled_operator_is_the_composition_of_its_differences():
             for b in _row_blocks(shape[0], parts):
                 normal_rows(v, j, nwa, nwb, lam, shift, u, cu, out, b.start, b.stop)
             np.testing.assert_allclose(out, want, rtol=0, atol=1e-5 * scale, err_msg=str((shape, parts)))
+
+
+def test_compiled_line_search_terms_are_the_energys_formulas():
+    # The line search's compiled passes against the energy written out in float64: the
+    # Lambertian reflectance of central differences (damped across the light: weight 1 - k),
+    # the least-squares albedo's sums, and the energy's data, one-sided and thin-plate terms,
+    # on any shape and any blocks of rows.
+    from haptex_compile.shading_kernels import albedo_sums_rows, energy_rows, reflectance_rows
+    from haptex_compile.shading_variational import _across, _row_blocks
+
+    light = np.array(Light(35.0, 120.0).vector, np.float32)
+    across = np.array(_across(light), np.float32)
+    albedo, dark_level, bright_level = np.float32(0.8), np.float32(0.05), np.float32(0.7)
+    for shape in KERNEL_SHAPES:
+        rng = np.random.default_rng(shape[0] * 100 + shape[1])
+        z = rng.normal(0, 0.3, shape).astype(np.float32)
+        img, w, dark, bright = (rng.random(shape).astype(np.float32) for _ in range(4))
+        z64 = z.astype(float)
+        p, q = 0.5 * _roll_dx2(z64), 0.5 * _roll_dy2(z64)
+        pc = float(across[0]) * p + float(across[1]) * q
+        lx, ly, lz = (float(c) for c in light)
+        for k in (0.0, 0.6):
+            want_r = (lz - p * lx - q * ly) / np.sqrt(1 + p * p + q * q - k * pc * pc)
+            res = float(albedo) * want_r - img
+            one_sided = (dark * np.maximum(res + img - float(dark_level), 0) ** 2
+                         + bright * np.minimum(res + img - float(bright_level), 0) ** 2)
+            want_e = [np.sum(w * res**2), np.sum(one_sided), np.sum(_roll_lap(z64) ** 2)]
+            want_a = [np.sum(w * want_r**2), np.sum(w * want_r * img)]
+            for parts in (1, 2, 3):
+                r = np.full_like(z, np.nan)
+                e_sums, a_sums = np.full((shape[0], 3), np.nan), np.full((shape[0], 2), np.nan)
+                for b in _row_blocks(shape[0], parts):
+                    reflectance_rows(z, light, np.float32(k), across, r, b.start, b.stop)
+                for b in _row_blocks(shape[0], parts):
+                    energy_rows(z, r, img, w, dark, bright, True, True, albedo, dark_level, bright_level,
+                                e_sums, b.start, b.stop)
+                    albedo_sums_rows(r, img, w, a_sums, b.start, b.stop)
+                msg = str((shape, k, parts))
+                np.testing.assert_allclose(r, want_r, rtol=0, atol=1e-6, err_msg=msg)
+                np.testing.assert_allclose(e_sums.sum(axis=0), want_e, rtol=1e-5, err_msg=msg)
+                np.testing.assert_allclose(a_sums.sum(axis=0), want_a, rtol=1e-5, err_msg=msg)
+                # Without censored weights, the one-sided terms are not read.
+                energy_rows(z, r, img, w, w, w, False, False, albedo, dark_level, bright_level, e_sums, 0, shape[0])
+                assert e_sums[:, 1].sum() == 0
 
 
 def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
@@ -318,7 +371,13 @@ def test_threaded_level_runs_in_a_forked_child():
 
 
 def test_damped_reflectance_weights_only_the_slope_across_the_light():
-    from haptex_compile.shading_variational import _reflectance
+    from haptex_compile.shading_kernels import _reflectance_pixel
+    from haptex_compile.shading_variational import _across
+
+    def _reflectance(p, q, light_vec, w):
+        # The solver's pixel formula (float64 here), weight w = 1 - k of the slope across
+        out = [_reflectance_pixel(a, b, *light_vec, 1.0 - w, *_across(light_vec)) for a, b in zip(p, q)]
+        return tuple(np.array(c) for c in zip(*out))
 
     light = Light(35.0, 40.0)
     lx, ly, lz = light.vector
