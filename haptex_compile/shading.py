@@ -804,7 +804,7 @@ def estimated_light_note(light: Light, periodic: bool = True) -> str:
         note += (
             "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
             " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 25 estimates left"
-            " the heights more than 5 points worse than the true light's, 12 of them not flagged"
+            " the heights more than 5 points worse than the true light's, 11 of them not flagged"
             " UNRELIABLE: give --light when it is known"
         )
     return note

@@ -325,8 +325,8 @@ def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
 class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
-    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None, bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None,
-                 lowfreq_plane=0.0):
+    def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None,
+                 bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0):
         self.img = image.astype(_F)
         self.w = weight.astype(_F)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
@@ -440,6 +440,19 @@ class _Problem:
             self._plane.add_to(v, out)
         return out
 
+    def reflectance_args(self) -> tuple:
+        """The kernels' reflectance arguments (float32): the light, the damping ``k`` of the
+        squared slope across the light and that direction (see shading_kernels'
+        ``_reflectance_pixel``)."""
+        across = _across(self.light) or (0.0, 0.0)
+        return np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F)
+
+    def censored_args(self) -> tuple:
+        """The kernels' censored-pixel arguments: the dark and bright weights and whether
+        each is present (an absent one is stood in for by the data weights, not read)."""
+        return (self.w if self.dark is None else self.dark, self.w if self.bright is None else self.bright,
+                self.dark is not None, self.bright is not None)
+
     def blocks(self, rows: int) -> list[slice]:
         """Row blocks of the elementwise work, one per thread."""
         return _row_blocks(rows, self.workers)
@@ -451,9 +464,7 @@ class _Problem:
         # By row: w res², the censored pixels' one-sided terms and the thin plate's squared
         # Laplacian (row sums: the same total on any number of threads).
         sums = np.empty((z.shape[0], 3))
-        args = (z, r, self.img, self.w, self.w if self.dark is None else self.dark,
-                self.w if self.bright is None else self.bright, self.dark is not None, self.bright is not None,
-                _F(albedo), _F(DARK_LEVEL), _F(BRIGHT_LEVEL), sums)
+        args = (z, r, self.img, self.w, *self.censored_args(), _F(albedo), _F(DARK_LEVEL), _F(BRIGHT_LEVEL), sums)
         _run_rows(lambda rows: energy_rows(*args, rows.start, rows.stop), self.blocks(z.shape[0]))
         data, censored, thin_plate = sums.sum(axis=0)
         e = 0.5 * float(data) + 0.5 * float(censored) + 0.5 * self.lam * float(thin_plate)
@@ -465,11 +476,8 @@ class _Problem:
         """The reflectance (albedo 1) of heights `z` (pixel units), with this level's damping
         of the squared slope across the light."""
         out = np.empty(z.shape, _F)
-        light = np.asarray(self.light, _F)
-        k = _F(1.0 - self.across_weight)
-        across = np.asarray(_across(self.light) or (0.0, 0.0), _F)
-        _run_rows(lambda rows: reflectance_rows(z, light, k, across, out, rows.start, rows.stop),
-                  self.blocks(z.shape[0]))
+        args = self.reflectance_args()
+        _run_rows(lambda rows: reflectance_rows(z, *args, out, rows.start, rows.stop), self.blocks(z.shape[0]))
         return out
 
     def precond(self, sums, albedo):
@@ -516,11 +524,8 @@ class _Problem:
         lam_l2 = self.lam * _lap2(z)
         # gn_setup_rows's inputs and outputs (arrays it does not read or write stand in for
         # absent censored weights and projection factors).
-        across = _across(self.light) or (0.0, 0.0)
         setup_args = (
-            z, self.img, self.w, self.w if self.dark is None else self.dark,
-            self.w if self.bright is None else self.bright, self.dark is not None, self.bright is not None,
-            np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F), _F(albedo),
+            z, self.img, self.w, *self.censored_args(), *self.reflectance_args(), _F(albedo),
             _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project, r, fa, fb, ha, hb, nwa, nwb,
             fa if ua is None else ua, fb if ub is None else ub, row_sums,
         )
