@@ -111,7 +111,7 @@ def test_spectral_symbol_holds_waves_across_the_light_in_proportion_to_their_mis
 def test_plain_image_of_a_weave_comes_back_flat_on_average(slant, tilt, monkeypatch):
     # A weave has no power below its own frequency, and its plain image shows that along the
     # light; the prior then holds the long waves across the light, which the free edges
-    # otherwise let curl (measured at 128 px: 0.200 and 0.440 without, 0.031 and 0.068 with).
+    # otherwise let curl (measured at 128 px: 0.200 and 0.440 without, 0.032 and 0.068 with).
     woven = ts.woven_like((128, 128), PX)
     light = Light(slant, tilt)
     img = render_lambertian(woven, PX, light, 0.8, periodic=False)
