@@ -186,9 +186,9 @@ def _half_differences(zc, zu, zd, p, q):
 
 @_kernel(fastmath={"reassoc"})
 def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, across, albedo,
-                  dark_level, bright_level, project, r, fa, fb, ha, hb, nwa, nwb, ua, ub, sums, r0, r1):
-    """Rows ``r0:r1`` of a Gauss-Newton step's pixel terms at heights `z` (pixel units): the
-    reflectance `r` (see :func:`_reflectance_pixel` for `light`, `k` and `across`), the
+                  dark_level, bright_level, project, fa, fb, ha, hb, nwa, nwb, ua, ub, sums, r0, r1):
+    """Rows ``r0:r1`` of a Gauss-Newton step's pixel terms at heights `z` (pixel units), from
+    the reflectance (see :func:`_reflectance_pixel` for `light`, `k` and `across`): the
     gradient's factors ``fa, fb = J * W res`` (J = albedo x R's partial derivatives; W res
     with the one-sided terms of the `dark` and `bright` weights where `has_dark`,
     `has_bright`, else those arrays are not read), the Jacobian's halves ``ha, hb`` and
@@ -203,12 +203,11 @@ def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, acros
     zero = np.float32(0.0)
     for i in range(r0, r1):
         _half_differences(z[i], z[(i + 1) % n], z[(i - 1) % n], p, q)
-        imr, wr, dkr, btr, rr, far, fbr = img[i], w[i], dark[i], bright[i], r[i], fa[i], fb[i]
+        imr, wr, dkr, btr, far, fbr = img[i], w[i], dark[i], bright[i], fa[i], fb[i]
         har, hbr, nwar, nwbr, uar, ubr = ha[i], hb[i], nwa[i], nwb[i], ua[i], ub[i]
         s0 = s1 = s2 = s3 = 0.0
         for c in range(m):
             rv, rp, rq = _reflectance_pixel(p[c], q[c], lx, ly, lz, k, cx, cy)
-            rr[c] = rv
             im = imr[c]
             res = albedo * rv - im
             ja, jb = albedo * rp, albedo * rq

@@ -516,7 +516,7 @@ class _Problem:
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
         the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
         blocks = self.blocks(z.shape[0])
-        r, ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(10))
+        ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(9))
         # By row: the sums of w rp², w rp rq, w rq² (the preconditioner's tensor) and w r².
         row_sums = np.empty((z.shape[0], 4))
         project = self.project_albedo and self._albedo_free(albedo)
@@ -526,7 +526,7 @@ class _Problem:
         # absent censored weights and projection factors).
         setup_args = (
             z, self.img, self.w, *self.censored_args(), *self.reflectance_args(), _F(albedo),
-            _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project, r, fa, fb, ha, hb, nwa, nwb,
+            _F(DARK_LEVEL), _F(BRIGHT_LEVEL), project, fa, fb, ha, hb, nwa, nwb,
             fa if ua is None else ua, fb if ub is None else ub, row_sums,
         )
 
