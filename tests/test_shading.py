@@ -1447,6 +1447,23 @@ def test_light_search_ends_on_the_whole_tile():
     assert normalised_height_error(found.height, h) <= e_given + 0.015
 
 
+def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
+    # The candidate lights are solved side by side in forked workers (SEARCH_PROCESSES); each
+    # solve is independent of the others, so the estimate is the same bit for bit. A lattice
+    # lit at 15° takes every step of the search: the slant grid, the tilt polish and scan,
+    # the compass searches, the tilt sweep and the search below the plateau.
+    from haptex_compile.synth_images import lattice_relief
+
+    img = render_lambertian(lattice_relief((128, 128), (16, 0), (0, 16), amplitude_um=12.0), PX,
+                            Light(15.0, 30.0), 0.8, periodic=True)
+    found = {}
+    for processes in (1, 2):
+        monkeypatch.setattr(shading, "SEARCH_PROCESSES", processes)
+        found[processes] = estimate_light(img)
+    assert found[2] == found[1]
+    assert found[1][0].albedo_at_bound  # the search below the plateau ran
+
+
 def test_near_frontal_light_is_flagged_unreliable(bumps128):
     # Under near-frontal light the slant's misfit has no minimum the search can find: a
     # plateau of steep lights, each with the albedo at its bound, fits as well (bumps lit at
@@ -1498,17 +1515,17 @@ def test_tilt_sweep_returns_only_a_deep_well():
         e = well if abs(axis - 100.0) < 6.0 else 1.0
         return e, (2.0 if bound else 0.5)
 
-    coarse.at_bound = 1.0
-    swept = shading._swept_tilt(coarse, 30.0, 10.0)
+    def misfit(fn):
+        # the misfit function's attributes: its albedo bound, and nothing to solve ahead
+        fn.at_bound, fn.prefetch = 1.0, lambda lights: None
+        return fn
+
+    swept = shading._swept_tilt(misfit(coarse), 30.0, 10.0)
     assert swept is not None and tilt_axis_difference_deg(swept, 100.0) < 6.0
     # A shallow well (above SWEEP_GAIN of the statistical tilt's misfit) is not trusted.
-    shallow = lambda s, t: coarse(s, t, well=0.6)  # noqa: E731
-    shallow.at_bound = 1.0
-    assert shading._swept_tilt(shallow, 30.0, 10.0) is None
+    assert shading._swept_tilt(misfit(lambda s, t: coarse(s, t, well=0.6)), 30.0, 10.0) is None
     # Lights whose albedo sits at the bound are not compared (the plateau fits anything).
-    bound = lambda s, t: coarse(s, t, bound=True)  # noqa: E731
-    bound.at_bound = 1.0
-    assert shading._swept_tilt(bound, 30.0, 10.0) is None
+    assert shading._swept_tilt(misfit(lambda s, t: coarse(s, t, bound=True)), 30.0, 10.0) is None
 
 
 def test_light_below_the_plateau_is_found_on_a_lattice_relief():

@@ -1,0 +1,58 @@
+"""forked_map: the same results, in order, whether the calls run in forked workers or in the
+calling process (one conformance suite for both)."""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from haptex_compile.forked_map import forked_map, worker_count
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers are used on Linux only")
+MODES = [1, pytest.param(2, marks=linux)]
+
+
+@pytest.mark.parametrize("processes", MODES)
+def test_results_come_back_in_order_and_equal_to_direct_calls(processes):
+    rng = np.random.default_rng(0)
+    data = rng.random((64, 64))  # held by the closure, not passed: the workers inherit it
+
+    def fn(i, scale):
+        return float(np.sum(np.roll(data, i, axis=0)[:8] * scale)), i
+
+    items = [(i, 0.5 * i) for i in range(9)]
+    with forked_map(fn, processes) as map_:
+        assert map_(items) == [fn(*args) for args in items]
+        assert map_(items[:1]) == [fn(*items[0])]
+        assert map_([]) == []
+
+
+@pytest.mark.parametrize("processes", MODES)
+def test_an_error_in_a_call_reaches_the_caller(processes):
+    def fn(x):
+        if x == 3:
+            raise ValueError("three")
+        return x
+
+    with forked_map(fn, processes) as map_:
+        with pytest.raises(ValueError, match="three"):
+            map_([(1,), (3,), (5,)])
+
+
+@linux
+def test_two_workers_are_other_processes_that_fork_no_further():
+    parent = os.getpid()
+    with forked_map(lambda i: (os.getpid(), worker_count()), 2) as map_:
+        out = map_([(i,) for i in range(6)])
+    assert all(pid != parent for pid, _ in out)
+    # Inside a worker (as under haptex-compile --jobs) nothing forks again.
+    assert all(count == 1 for _, count in out)
+
+
+def test_one_process_runs_in_the_caller():
+    parent = os.getpid()
+    with forked_map(lambda i: os.getpid(), 1) as map_:
+        assert map_([(0,), (1,)]) == [parent, parent]
+    assert worker_count(1) == 1
