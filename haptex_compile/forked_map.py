@@ -9,18 +9,23 @@ memory copy-on-write: the function and what it holds (the image, its closures) a
 pickled; only the arguments and the results cross between processes.
 
 Forking is used on Linux only, and not inside a worker process (``haptex-compile --jobs``
-compiles several inputs in worker processes, which already take the CPUs). Elsewhere the map
-runs in the calling process: the results are the same either way.
+compiles several inputs in worker processes, which already take the CPUs). Elsewhere, and
+if the workers cannot be started or one dies, the calls run in the calling process: the
+results are the same either way.
 """
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 
+LOG = logging.getLogger("haptex.forked_map")
 _FN: Callable | None = None  # the function of the pool this worker belongs to
 
 
@@ -50,18 +55,34 @@ def forked_map(fn: Callable, processes: int | None = None) -> Iterator[Callable[
     calling process when that is 1, or for a single tuple).
 
     `fn` must be deterministic and must not rely on side effects in the caller: each call
-    may run in another process.
+    may run in another process. An exception raised by a call reaches the caller.
     """
+    def here(items):
+        return [fn(*args) for args in items]
+
     count = worker_count(processes)
     if count <= 1:
-        yield lambda items: [fn(*args) for args in items]
+        yield here
         return
     # Fork: the workers inherit `fn` as it is (closures included); the initializer's
     # arguments are not pickled under fork.
-    pool = multiprocessing.get_context("fork").Pool(count, initializer=_set_fn, initargs=(fn,))
+    pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
+        count, mp_context=multiprocessing.get_context("fork"), initializer=_set_fn, initargs=(fn,))
+
+    def map_(items):
+        nonlocal pool
+        if pool is None or len(items) < 2:
+            return here(items)
+        try:
+            return list(pool.map(_call, items))
+        except (BrokenProcessPool, OSError) as exc:  # a worker died or could not start
+            LOG.warning("worker processes failed (%s); going on in this process", exc)
+            pool.shutdown(wait=False, cancel_futures=True)
+            pool = None
+            return here(items)
+
     try:
-        yield lambda items: ([fn(*args) for args in items] if len(items) < 2
-                             else pool.map(_call, items, chunksize=1))
+        yield map_
     finally:
-        pool.terminate()
-        pool.join()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

@@ -2,6 +2,7 @@
 calling process (one conformance suite for both)."""
 from __future__ import annotations
 
+import logging
 import os
 import sys
 
@@ -56,3 +57,19 @@ def test_one_process_runs_in_the_caller():
     with forked_map(lambda i: os.getpid(), 1) as map_:
         assert map_([(0,), (1,)]) == [parent, parent]
     assert worker_count(1) == 1
+
+
+@linux
+def test_a_worker_that_dies_leaves_the_calls_to_the_caller(caplog, monkeypatch):
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    parent = os.getpid()
+
+    def fn(x):
+        if os.getpid() != parent:
+            os._exit(3)  # killed, as by the kernel's out-of-memory killer
+        return 2 * x
+
+    with forked_map(fn, 2) as map_:
+        assert map_([(1,), (2,), (3,)]) == [2, 4, 6]
+        assert map_([(4,), (5,)]) == [8, 10]  # no pool any more: in this process
+    assert "worker processes failed" in caplog.text
