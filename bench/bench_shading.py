@@ -36,6 +36,7 @@ import numpy as np
 from haptex_compile import known_surfaces as ts
 from haptex_compile import shading
 from haptex_compile.colours import TwoColourModel
+from haptex_compile.forked_map import worker_count
 from haptex_compile.sources import remove_plane
 from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tables import mean_tactile
@@ -469,6 +470,35 @@ def _timing(n: int, light: Light, repeats: int = 2) -> dict[str, float]:
     return {label: t / (n * n / 1e6) for label, t in best.items()}
 
 
+def _light_search_rows(n: int, quick: bool) -> list[str]:
+    """The light search's seconds on the bench's tiles, its candidate lights solved in worker
+    processes (the default) and in one process (``shading.SEARCH_PROCESSES = 1``, the
+    baseline), same run, and whether the two estimates are the same."""
+    lights = TIMING_LIGHTS[:1] if quick else TIMING_LIGHTS
+    rows = ["", f"Light search (`estimate_light`) on the {n} px tiles, light estimated at each timing"
+            " light: seconds with the candidate lights of each step solved side by side in"
+            f" {worker_count(shading.SEARCH_PROCESSES)} worker processes (`shading.SEARCH_PROCESSES`,"
+            " default: one per CPU) and, baseline, in one process (`SEARCH_PROCESSES = 1`); and"
+            " whether the estimates are the same, bit for bit:", "",
+            "| surface | slant, tilt (°) | one process: s | worker processes: s | ratio | same light |",
+            "| --- | --- | --- | --- | --- | --- |"]
+    totals = [0.0, 0.0]
+    for name, h in _surfaces(n).items():
+        for slant, tilt in lights:
+            img = render_lambertian(h, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
+            found, seconds = [], []
+            for processes in (1, shading.SEARCH_PROCESSES):
+                with mock.patch.object(shading, "SEARCH_PROCESSES", processes):
+                    t0 = time.perf_counter()
+                    found.append(estimate_light(img))
+                    seconds.append(time.perf_counter() - t0)
+            totals = [a + b for a, b in zip(totals, seconds)]
+            rows.append(f"| {name} | {slant:g}, {tilt:g} | {seconds[0]:.2f} | {seconds[1]:.2f} |"
+                        f" {seconds[0] / seconds[1]:.2f} | {'yes' if found[0] == found[1] else 'NO'} |")
+    rows.append(f"| all | | {totals[0]:.1f} | {totals[1]:.1f} | {totals[0] / totals[1]:.2f} | |")
+    return rows
+
+
 # Bands of the spectral diagnosis, in cycles per tile (see _band_power_ratios).
 BANDS_CYCLES = ((1, 1), (2, 3), (4, 6), (7, 15), (16, 50), (51, 128))
 
@@ -868,6 +898,7 @@ def run(quick: bool = False) -> str:
             t0 = time.perf_counter()
             est, _ = estimate_light(img)
             lines.append(f"| {side} | {est.slant_deg:.1f}, {est.tilt_deg:.1f} | {time.perf_counter() - t0:.1f} |")
+    lines += _light_search_rows(128 if quick else n, quick)
     tn = 512 if quick else 1024
     times = [_timing(tn, Light(*light), repeats=1 if quick else 2) for light in TIMING_LIGHTS]
     ts_mp = times[0]["Tsai-Shah (baseline)"]
