@@ -1470,8 +1470,9 @@ def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
     assert found[2] == found[1]
     assert found[1][0].albedo_at_bound  # the search below the plateau ran
     if sys.platform.startswith("linux"):
-        # Most solves ran in the workers; a step with one new light runs it here.
-        assert here[2] < 0.5 * here[1]
+        # The solves ran in the workers, but for steps with a single new light, which run
+        # here (measured: 1 of 208).
+        assert here[2] < 0.1 * here[1]
 
 
 def test_near_frontal_light_is_flagged_unreliable(bumps128):
