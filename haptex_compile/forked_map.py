@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -42,6 +43,9 @@ def worker_count(processes: int | None = None) -> int:
 def _set_fn(fn: Callable) -> None:
     global _FN
     _FN = fn
+    # Ctrl-C reaches the whole process group: the caller stops the pool, and a worker
+    # interrupted on its own would only break it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _call(args: tuple):

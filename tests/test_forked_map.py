@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 
 import numpy as np
@@ -45,11 +46,13 @@ def test_an_error_in_a_call_reaches_the_caller(processes):
 @linux
 def test_two_workers_are_other_processes_that_fork_no_further():
     parent = os.getpid()
-    with forked_map(lambda i: (os.getpid(), worker_count()), 2) as map_:
+    with forked_map(lambda i: (os.getpid(), worker_count(), signal.getsignal(signal.SIGINT) == signal.SIG_IGN), 2) as map_:
         out = map_([(i,) for i in range(6)])
-    assert all(pid != parent for pid, _ in out)
+    assert all(pid != parent for pid, _, _ in out)
     # Inside a worker (as under haptex-compile --jobs) nothing forks again.
-    assert all(count == 1 for _, count in out)
+    assert all(count == 1 for _, count, _ in out)
+    # Ctrl-C is the caller's to handle (it stops the pool): the workers ignore it.
+    assert all(ignored for _, _, ignored in out)
 
 
 def test_one_process_runs_in_the_caller():
