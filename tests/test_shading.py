@@ -1475,6 +1475,31 @@ def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
         assert here[2] < 0.1 * here[1]
 
 
+def test_the_extra_starts_give_the_same_heights_in_worker_processes(monkeypatch, bumps128):
+    # Lit along the tile's x axis: two held starts and the full-resolution starts (two
+    # independent chains) run side by side in forked workers; the heights are the same bit
+    # for bit, and only the main pyramid's solve runs here.
+    import sys
+
+    from haptex_compile import shading_variational
+
+    light = Light(45.0, 180.0)
+    img = render_lambertian(bumps128, PX, light, 0.8, periodic=True)
+    solve = shading_variational.solve_variational
+    heights, here = {}, {}
+    for processes in (1, 2):
+        calls = []
+        monkeypatch.setattr(shading_variational, "solve_variational", lambda *a, **k: calls.append(1) or solve(*a, **k))
+        monkeypatch.setattr(shading, "SEARCH_PROCESSES", processes)
+        heights[processes] = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height
+        here[processes] = len(calls)
+    assert np.array_equal(heights[2], heights[1])
+    # one pyramid, two held starts, flat, negated and the two-step continuation
+    assert here[1] == 7
+    if sys.platform.startswith("linux"):
+        assert here[2] == 1
+
+
 def test_near_frontal_light_is_flagged_unreliable(bumps128):
     # Under near-frontal light the slant's misfit has no minimum the search can find: a
     # plateau of steep lights, each with the albedo at its bound, fits as well (bumps lit at
