@@ -184,6 +184,15 @@ def _half_differences(zc, zu, zd, p, q):
             pc[c] = (zp[c] - zm[c]) * _HALF
 
 
+@numba.njit(inline="always")
+def _censored_residuals(model, dark_level, bright_level):
+    """The one-sided residuals of a censored pixel at model intensity ``albedo R``: above
+    `dark_level` for a black one (0 below), below `bright_level` for a saturated one (0
+    above)."""
+    zero = np.float32(0.0)
+    return max(model - dark_level, zero), min(model - bright_level, zero)
+
+
 @_kernel(fastmath={"reassoc"})
 def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, across, albedo,
                   dark_level, bright_level, project, fa, fb, ha, hb, nwa, nwb, ua, ub, sums, r0, r1):
@@ -213,14 +222,14 @@ def gn_setup_rows(z, img, w, dark, bright, has_dark, has_bright, light, k, acros
             ja, jb = albedo * rp, albedo * rq
             w0 = wr[c]
             wres, wact = w0 * res, w0
-            if has_dark:
-                cr = max(res + im - dark_level, zero)
-                wres += dkr[c] * cr
-                wact += dkr[c] * np.float32(cr != zero)
-            if has_bright:
-                cr = min(res + im - bright_level, zero)
-                wres += btr[c] * cr
-                wact += btr[c] * np.float32(cr != zero)
+            if has_dark or has_bright:
+                cd, cb = _censored_residuals(res + im, dark_level, bright_level)
+                if has_dark:
+                    wres += dkr[c] * cd
+                    wact += dkr[c] * np.float32(cd != zero)
+                if has_bright:
+                    wres += btr[c] * cb
+                    wact += btr[c] * np.float32(cb != zero)
             far[c] = ja * wres
             fbr[c] = jb * wres
             h_a, h_b = ja * _HALF, jb * _HALF
@@ -281,7 +290,6 @@ def energy_rows(z, r, img, w, dark, bright, has_dark, has_bright, albedo, dark_l
     and `bright` weights (where `has_dark`, `has_bright`; else those arrays are not read),
     and the squared periodic 5-point Laplacian of `z`. Scalars float32 (`has_*`: bool)."""
     n, m = z.shape
-    zero = np.float32(0.0)
     four = np.float32(4.0)
     for i in range(r0, r1):
         zc, zu, zd = z[i], z[(i + 1) % n], z[(i - 1) % n]
@@ -291,12 +299,12 @@ def energy_rows(z, r, img, w, dark, bright, has_dark, has_bright, albedo, dark_l
             im = ir[c]
             res = albedo * rr[c] - im
             s0 += wr[c] * res * res
-            if has_dark:
-                cr = max(res + im - dark_level, zero)
-                s1 += dkr[c] * cr * cr
-            if has_bright:
-                cr = min(res + im - bright_level, zero)
-                s1 += btr[c] * cr * cr
+            if has_dark or has_bright:
+                cd, cb = _censored_residuals(res + im, dark_level, bright_level)
+                if has_dark:
+                    s1 += dkr[c] * cd * cd
+                if has_bright:
+                    s1 += btr[c] * cb * cb
         for e in range(min(m, 2)):  # the edge columns, with wrapped neighbours
             c = 0 if e == 0 else m - 1
             lap = zu[c] + zd[c] + zc[(c + 1) % m] + zc[(c - 1) % m] - four * zc[c]
