@@ -1045,9 +1045,8 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         if swept is None:
             return found
         _, _, other = _search_light(coarse, final, lossy, float(slant), swept, beat=SECOND_SEARCH_GAIN * coarse_misfit)
-        # The other search's light is kept where it fits better with the albedo free.
-        if other is not None:
-            final.prefetch([(other.slant, other.tilt), (found.slant, found.tilt)])
+        # The other search's light is kept where it fits better with the albedo free (both
+        # misfits are cached: each search ended on its light's).
         if (other is not None and not other.at_bound
                 and final(other.slant, other.tilt)[0] < final(found.slant, found.tilt)[0]):
             return other
@@ -1095,11 +1094,16 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     final stage is then skipped)."""
     stat_slant = float(slant)
 
+    def misfits(e_fn, lights, top=np.inf):
+        # e_fn at each (slant, tilt), the uncached ones solved at once (fit.prefetch); `top`:
+        # the highest slant e_fn solves for (above it, it returns inf unsolved)
+        fit.prefetch([(a, b) for a, b in lights if a <= top])
+        return [e_fn(a, b) for a, b in lights]
+
     def polish_tilt(e_of, s, t, step, stop):
         while step >= stop:
             cands = [t - step, t, t + step]
-            fit.prefetch([(s, c) for c in cands])
-            errs = [e_of(s, c) for c in cands]
+            errs = misfits(e_of, [(s, c) for c in cands])
             if not np.isfinite(min(errs)):
                 break  # no misfit to follow (the walk would never stop)
             t_new = cands[int(np.argmin(errs))]
@@ -1109,8 +1113,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         return t
 
     def best(e_of, slants, t):
-        fit.prefetch([(g, t) for g in slants])
-        errs = [e_of(g, t) for g in slants]
+        errs = misfits(e_of, [(g, t) for g in slants])
         return float(slants[int(np.argmin(errs))]), np.asarray(errs)
 
     # Coarse: the misfit drops steeply up to the true slant, then stays low (a plateau that
@@ -1120,8 +1123,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     fit = coarse
     e_of = lambda s_, t_: fit(s_, t_)[0]  # noqa: E731
     grid = np.arange(5.0, 80.0 + 1e-9, 5.0)
-    fit.prefetch([(g, tilt) for g in grid])
-    errs = np.asarray([e_of(g, tilt) for g in grid])
+    errs = np.asarray(misfits(e_of, [(g, tilt) for g in grid]))
     s = knee = float(grid[errs <= KNEE_FACTOR * errs.min()][0])
     t = polish_tilt(e_of, s, float(tilt), 8.0, 1.0)
     s, _ = best(e_of, np.arange(max(MIN_SLANT_DEG, s - 3.0), min(85.0, s + 6.0) + 1e-9, 1.0), t)
@@ -1145,25 +1147,21 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         # Averaging biases the slant upwards (it darkens rough shading): scan up to just above
         # the coarse estimate.
         low = grid[grid <= s + 5.0]
-        fit.prefetch([(g, t) for g in low])
-        errs = np.asarray([e_of(g, t) for g in low])
+        errs = np.asarray(misfits(e_of, [(g, t) for g in low]))
         s = float(low[errs <= KNEE_FACTOR * errs.min()][0])
     # The misfit is narrow in tilt (a few degrees) and the reduced image can settle on a side
     # lobe: scan the tilt around the estimate (measured on a painted plain-weave window lit at
     # 45°: the coarse stage stopped 13° off, with 3.5 times the misfit of the true tilt's).
     tilts = t + np.arange(-TILT_SCAN_DEG, TILT_SCAN_DEG + 1e-9, TILT_SCAN_STEP_DEG)
-    fit.prefetch([(s, c) for c in tilts])
-    t = float(tilts[int(np.argmin([e_of(s, c) for c in tilts]))])
+    t = float(tilts[int(np.argmin(misfits(e_of, [(s, c) for c in tilts])))])
     # Slant and tilt are coupled: a compass search over both (8 neighbours), halving steps
     # (from 2°: starting at 1° left the plain weave at 30° stuck 2° and 4° off).
-    def compass(e_fn, s, t, top=85.0):
-        # (`top`: the highest slant e_fn solves for; above it, it returns inf unsolved)
+    def compass(e_fn, s, t, top=np.inf):
         step = 2.0
         while step >= 0.5:
             cands = [(s + i * step, t + j * step) for i in (-1, 0, 1) for j in (-1, 0, 1)]
             cands = [(a, b) for a, b in cands if MIN_SLANT_DEG <= a <= 85.0]
-            fit.prefetch([(a, b) for a, b in cands if a <= top])
-            errs = [e_fn(a, b) for a, b in cands]
+            errs = misfits(e_fn, cands, top)
             if not np.isfinite(min(errs)):
                 break  # as in polish_tilt
             s_new, t_new = cands[int(np.argmin(errs))]
@@ -1192,29 +1190,27 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
             return _free_misfit(fit, a, b) if a <= top_slant else np.inf
 
         tilts = t + np.arange(0.0, 180.0, TILT_SCAN_STEP_DEG)
-        fit.prefetch([(stat_slant, c) for c in tilts])
-        errs = [free(stat_slant, c) for c in tilts]
+        errs = misfits(free, [(stat_slant, c) for c in tilts], top_slant)
         e_stat = float(min(errs))
         s = stat_slant
         if np.isfinite(e_stat):
             t_low = float(tilts[int(np.argmin(errs))])
             slants = np.arange(MIN_SLANT_DEG, top_slant + 1e-9, 1.0)
-            fit.prefetch([(c, t_low) for c in slants])
-            errs_s = [free(c, t_low) for c in slants]
+            errs_s = misfits(free, [(c, t_low) for c in slants], top_slant)
             s_w, t_w = compass(free, float(slants[int(np.argmin(errs_s))]), t_low, top_slant)
             if free(s_w, t_w) <= WELL_DEPTH * e_stat:
                 s, t = s_w, t_w
     # Uncertainty: the change that doubles the misfit (parabola through ±1°), at least 1°
     # (slant; in quadrature with the albedo bound's possible bias) and 0.5° (tilt).
-    fit.prefetch([(s, t), (s - 1, t), (s + 1, t), (s, t - 1), (s, t + 1)])
-    e0 = e_of(s, t)
+    e0, e_s_minus, e_s_plus, e_t_minus, e_t_plus = misfits(
+        e_of, [(s, t), (s - 1, t), (s + 1, t), (s, t - 1), (s, t + 1)])
 
     def half_width(e_minus, e_plus):
         curv = 0.5 * (e_minus + e_plus - 2.0 * e0)
         return float(np.sqrt(e0 / curv)) if curv > 0 and e0 > 0 else 90.0
 
-    slant_sd = float(np.hypot(max(half_width(e_of(s - 1, t), e_of(s + 1, t)), 1.0), CAP_BIAS_DEG))
-    tilt_sd = max(half_width(e_of(s, t - 1), e_of(s, t + 1)), 0.5)
+    slant_sd = float(np.hypot(max(half_width(e_s_minus, e_s_plus), 1.0), CAP_BIAS_DEG))
+    tilt_sd = max(half_width(e_t_minus, e_t_plus), 0.5)
     albedo = fit(s, t)[1]
     at_bound = albedo >= bound
     if plateau is not None:
