@@ -191,33 +191,9 @@ def _lap2(z: np.ndarray, scale: float = 1.0, shift: float = 0.0) -> np.ndarray:
     return _filter_periodic(z, kernel)
 
 
-def _lap_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
-    """Rows `rows` of :func:`_lap` of `z`, written to ``out[rows]`` (returned), with the
-    same sums in the same order."""
-    n = z.shape[0]
-    r0, r1 = rows.start, rows.stop
-    o = np.multiply(z[rows], -4.0, out=out[rows])
-    if r0 >= 1:  # z[i - 1]
-        o += z[r0 - 1:r1 - 1]
-    else:
-        o[1:] += z[0:r1 - 1]
-        o[0] += z[-1]
-    if r1 <= n - 1:  # z[i + 1]
-        o += z[r0 + 1:r1 + 1]
-    else:
-        o[:-1] += z[r0 + 1:n]
-        o[-1] += z[0]
-    zb = z[rows]
-    o[:, 1:] += zb[:, :-1]
-    o[:, 0] += zb[:, -1]
-    o[:, :-1] += zb[:, 1:]
-    o[:, -1] += zb[:, 0]
-    return o
-
-
 def _lap(z: np.ndarray) -> np.ndarray:
     """Periodic 5-point Laplacian."""
-    return _lap_rows(z, slice(0, z.shape[0]), np.empty_like(z))
+    return np.roll(z, 1, 0) + np.roll(z, -1, 0) + np.roll(z, 1, 1) + np.roll(z, -1, 1) - 4 * z
 
 
 def _across(light) -> tuple[float, float] | None:
