@@ -539,18 +539,15 @@ class _Problem:
 
         def matvec(v):
             # J v, then the thin plate, D^T of J v's weighted terms and the projection's
-            # rank-one term, in two compiled passes (shading_kernels); with a
-            # low-frequency penalty, the rank-one term follows it, below.
+            # rank-one term, in two compiled passes (shading_kernels); then a low-frequency
+            # penalty.
             out = np.empty_like(v)
-            c_vp = None if vp is None or self.lf is not None else float(np.vdot(vp[0], v)) / vp[1]
-            u, cu = (v, _F(0.0)) if c_vp is None else (vp[0], _F(c_vp))
+            u, cu = (v, _F(0.0)) if vp is None else (vp[0], _F(float(np.vdot(vp[0], v)) / vp[1]))
             _run_rows(lambda rows: jacobian_rows(v, ha, hb, jv, rows.start, rows.stop), blocks)
             _run_rows(lambda rows: normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out,
                                                rows.start, rows.stop), blocks)
             if self.lf is not None:
                 out += self.lowfreq(v)
-                if vp is not None:
-                    out -= vp[0] * (float(np.vdot(vp[0], v)) / vp[1])
             return out
 
         totals = row_sums.sum(axis=0)
