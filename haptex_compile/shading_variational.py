@@ -745,6 +745,22 @@ def _upsample(z, shape):
     return (big * factor).astype(_F)
 
 
+def _level_prior(scale: float, albedo: float, data_shape, weight: float, cycles: float, power,
+                 power_weight: float) -> tuple:
+    """The (lowfreq, spectral) arguments of :class:`_Problem` for the low-frequency prior on a
+    level `scale` times the finest one's size (see :func:`solve_variational`'s `lowfreq_*`
+    parameters; weights relative to `albedo`²); (None, None) without a prior."""
+    if not weight > 0 or data_shape is None:
+        return None, None
+    side = max(data_shape) * scale
+    lowfreq = (weight * albedo * albedo, 2 * np.pi * cycles / side)
+    spectral = None
+    if power is not None and power_weight > 0:
+        spectral = dict(albedo=albedo, side_px=side, data_pixels=data_shape[0] * data_shape[1] * scale * scale,
+                        power=power, weight=power_weight)
+    return lowfreq, spectral
+
+
 def solve_variational(
     image: np.ndarray,
     weight: np.ndarray,
@@ -1007,14 +1023,8 @@ def solve_variational(
         if not censored_data:
             w = _uncensored_weight(w, d, b)
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
-        lowfreq = spectral = None
-        if prior_weight > 0 and data_shape is not None:
-            scale = img.shape[1] / image.shape[1]
-            side = max(data_shape) * scale
-            lowfreq = (prior_weight * albedo * albedo, 2 * np.pi * lowfreq_cycles / side)
-            if lowfreq_power is not None and lowfreq_power_weight > 0:
-                spectral = dict(albedo=albedo, side_px=side, data_pixels=data_shape[0] * data_shape[1] * scale * scale,
-                                power=lowfreq_power, weight=lowfreq_power_weight)
+        lowfreq, spectral = _level_prior(img.shape[1] / image.shape[1], albedo, data_shape, prior_weight,
+                                         lowfreq_cycles, lowfreq_power, lowfreq_power_weight)
         prob = _Problem(
             img, w, light_vec, level_lams[level], workers, lowfreq, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
@@ -1058,8 +1068,15 @@ def reflectance(z: np.ndarray, light_vec: np.ndarray) -> np.ndarray:
     return (lz - p * lx - q * ly) / np.sqrt(1.0 + p * p + q * q)
 
 
-def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=None) -> float:
+def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=None, data_shape=None,
+           lowfreq_weight=0.0, lowfreq_cycles=1.0, lowfreq_power=None, lowfreq_power_weight=0.0,
+           lowfreq_plane_weight=0.0) -> float:
     """The shading energy of height `z` (pixel units) on the periodic domain (`dark` and
-    `bright`: censored pixels, as in :func:`solve_variational`)."""
-    prob = _Problem(image, weight, light_vec, lam, 1, dark=dark, bright=bright, albedo_bound=False)
+    `bright`: censored pixels, as in :func:`solve_variational`). With `data_shape` and a
+    `lowfreq_weight` (a plain image's domain), the low-frequency prior as on the finest level of
+    :func:`solve_variational` with those parameters, its weights relative to this `albedo`²."""
+    lowfreq, spectral = _level_prior(1.0, albedo, data_shape, lowfreq_weight, lowfreq_cycles, lowfreq_power,
+                                     lowfreq_power_weight)
+    prob = _Problem(image, weight, light_vec, lam, 1, lowfreq, dark, bright, albedo_bound=False,
+                    lowfreq_spectral=spectral, lowfreq_plane=lowfreq_plane_weight)
     return prob.energy(z.astype(_F), albedo)

@@ -865,6 +865,33 @@ def test_on_block_means_the_prior_charges_the_same_tilt():
         assert extra == pytest.approx(want, rel=1e-4)
 
 
+
+def test_the_energy_of_a_plain_domain_includes_its_prior():
+    # energy() with a plain image's domain keywords adds the finest level's prior: a wave
+    # A cos(w y) across a light along x costs 0.5 x mu x phi(w) x sin²(w) x A² x N / 2 more
+    # (mu = weight x albedo², phi the Gaussian cut at `cycles` per data region's side, N the
+    # domain's pixels), and a wave along the light nothing.
+    from haptex_compile.shading_variational import energy
+
+    rows, cols, data = 288, 288, (256, 256)
+    w = np.zeros((rows, cols), np.float32)
+    w[: data[0], : data[1]] = 1.0
+    img = np.full((rows, cols), 0.5, np.float32)
+    light = Light(40.0, 0.0).vector
+    yy, xx = np.mgrid[:rows, :cols].astype(np.float32)
+    albedo, weight, amp = 0.8, 0.3, 2.0
+    prior = dict(data_shape=data, lowfreq_weight=weight, lowfreq_cycles=1.0)
+    for m in (1, 2):
+        wave = 2 * np.pi * m / rows
+        across = (amp * np.cos(wave * yy)).astype(np.float32)
+        extra = energy(img, w, light, albedo, across, **prior) - energy(img, w, light, albedo, across)
+        phi = np.exp(-(wave / (2 * np.pi / max(data))) ** 2)
+        want = 0.5 * weight * albedo**2 * phi * np.sin(wave) ** 2 * amp**2 * rows * cols / 2
+        assert extra == pytest.approx(want, rel=0.01)
+        along = (amp * np.cos(wave * xx)).astype(np.float32)
+        extra = energy(img, w, light, albedo, along, **prior) - energy(img, w, light, albedo, along)
+        assert abs(extra) <= 1e-6 * want
+
 @pytest.mark.parametrize(
     "periodic, method, target",
     [(True, "default", 0.3), (True, "accurate", 0.05), (False, "default", 0.3)],
