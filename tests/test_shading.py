@@ -865,7 +865,6 @@ def test_on_block_means_the_prior_charges_the_same_tilt():
         assert extra == pytest.approx(want, rel=1e-4)
 
 
-
 def test_the_energy_of_a_plain_domain_includes_its_prior():
     # energy() with a plain image's domain keywords adds the finest level's prior: a wave
     # A cos(w y) across a light along x costs 0.5 x mu x phi(w) x sin²(w) x A² x N / 2 more
@@ -891,6 +890,7 @@ def test_the_energy_of_a_plain_domain_includes_its_prior():
         along = (amp * np.cos(wave * xx)).astype(np.float32)
         extra = energy(img, w, light, albedo, along, **prior) - energy(img, w, light, albedo, along)
         assert abs(extra) <= 1e-6 * want
+
 
 @pytest.mark.parametrize(
     "periodic, method, target",
