@@ -813,7 +813,8 @@ def estimated_light_note(light: Light, periodic: bool = True) -> str:
             "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
             " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 25 estimates left"
             " the heights more than 5 points worse than the true light's, 11 of them not flagged"
-            " UNRELIABLE: give --light when it is known"
+            " UNRELIABLE (the true light turned 3° in tilt does that to 32 of them): give --light"
+            " when it is known"
         )
     return note
 
@@ -1392,7 +1393,10 @@ def shape_from_shading(
         the image's waves along the light show little power (a weave: see
         :mod:`haptex_compile.shading_prior`). Periodic tiles are much better posed: a strip
         along the light closes on itself, so its height offset is fixed (measured on 256 px
-        random bumps at 45°: 0.07 periodic, 0.24 as a plain image).
+        random bumps at 45°: 0.07 periodic, 0.24 as a plain image). On a plain image those
+        offsets are left to the thin plate and the prior, and the energy's own minimum is off:
+        random bumps at 60°, 10 seeds, the minimum nearest the true surface has normalised
+        errors 0.26-0.36 (the default 0.23-0.39; ``bench/bench_shading.py``).
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
