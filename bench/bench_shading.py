@@ -547,7 +547,7 @@ POLISH_ROUNDS = 40
 # The keyword arguments of a solver's domain that its energy takes (the censored pixels; a
 # plain image's data region and low-frequency prior).
 ENERGY_KEYS = ("dark", "bright", "data_shape", "lowfreq_weight", "lowfreq_cycles", "lowfreq_power",
-               "lowfreq_power_weight", "lowfreq_plane_weight")
+               "lowfreq_power_weight", "lowfreq_plane_weight", "lowfreq_fine_factor")
 
 
 def _domain_energy(img, weight, light: Light, albedo: float, z: np.ndarray, kwargs: dict) -> float:

@@ -792,6 +792,7 @@ def solve_variational(
     lowfreq_plane_weight: float = 0.0,
     lowfreq_plane_coarse: float = 1.0,
     lowfreq_plane_coarse_level: int = 2,
+    lowfreq_fine_factor: float = 1.0,
     fit_min_level: int = 0,
     bound_max_level: int = 0,
     albedo_max: float = 1e3,
@@ -892,6 +893,11 @@ def solve_variational(
         holds the plane there. Coarse levels' fits of plain images came out tilted along the
         light, which the finer levels then spent their steps removing (measured: see
         ``shading.COARSE_PLANE_FACTOR``).
+    lowfreq_fine_factor : float
+        On the finest level, `lowfreq_weight` (and with it the plane's weight) is multiplied
+        by this; the spectral prior (`lowfreq_power_weight`) is not. The coarse levels set the
+        long waves under the full prior; the finest level's thin plate and data may then move
+        them (see ``shading.PLAIN_FINE_PRIOR_PX``).
     albedo_projection : bool
         Eliminate the albedo from each Gauss-Newton step by variable projection (where it
         is fitted and not held at a bound): the step solves for the height with the albedo
@@ -1023,6 +1029,8 @@ def solve_variational(
         if not censored_data:
             w = _uncensored_weight(w, d, b)
         z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
+        if level == 0:
+            prior_weight *= lowfreq_fine_factor
         lowfreq, spectral = _level_prior(img.shape[1] / image.shape[1], albedo, data_shape, prior_weight,
                                          lowfreq_cycles, lowfreq_power, lowfreq_power_weight)
         prob = _Problem(
@@ -1070,13 +1078,13 @@ def reflectance(z: np.ndarray, light_vec: np.ndarray) -> np.ndarray:
 
 def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=None, data_shape=None,
            lowfreq_weight=0.0, lowfreq_cycles=1.0, lowfreq_power=None, lowfreq_power_weight=0.0,
-           lowfreq_plane_weight=0.0) -> float:
+           lowfreq_plane_weight=0.0, lowfreq_fine_factor=1.0) -> float:
     """The shading energy of height `z` (pixel units) on the periodic domain (`dark` and
     `bright`: censored pixels, as in :func:`solve_variational`). With `data_shape` and a
     `lowfreq_weight` (a plain image's domain), the low-frequency prior as on the finest level of
     :func:`solve_variational` with those parameters, its weights relative to this `albedo`²."""
-    lowfreq, spectral = _level_prior(1.0, albedo, data_shape, lowfreq_weight, lowfreq_cycles, lowfreq_power,
-                                     lowfreq_power_weight)
+    lowfreq, spectral = _level_prior(1.0, albedo, data_shape, lowfreq_weight * lowfreq_fine_factor, lowfreq_cycles,
+                                     lowfreq_power, lowfreq_power_weight)
     prob = _Problem(image, weight, light_vec, lam, 1, lowfreq, dark, bright, albedo_bound=False,
                     lowfreq_spectral=spectral, lowfreq_plane=lowfreq_plane_weight)
     return prob.energy(z.astype(_F), albedo)

@@ -916,6 +916,41 @@ def test_low_slant_random_bumps_meet_the_target(monkeypatch, periodic, method, t
     assert error() > 0.3
 
 
+def test_a_small_plain_images_finest_level_weakens_the_flat_prior(monkeypatch):
+    # Random bumps of 256 px as a plain image lit at 15° (seed 7): with the flat-on-average
+    # prior at full weight on the finest level the error was 0.322, above the issue's 30 %;
+    # weakened by (256 / PLAIN_FINE_PRIOR_PX)², the thin plate sets the lines' offsets: 0.250.
+    truth = ts.random_bumps((256, 256), PX, seed=7)
+    light = Light(15.0, 30.0)
+    img = render_lambertian(truth, PX, light, 0.8, periodic=False)
+
+    def error():
+        result = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False)
+        return normalised_height_error(result.height, truth)
+
+    assert error() < 0.3
+    monkeypatch.setattr(shading, "PLAIN_FINE_PRIOR_PX", 1)  # full weight
+    assert error() > 0.3
+
+
+def test_the_fine_prior_factor_scales_the_finest_levels_prior():
+    # energy() charges the finest level's prior at lowfreq_weight x lowfreq_fine_factor, as
+    # solve_variational's finest level does.
+    from haptex_compile.shading_variational import energy
+
+    rows, cols, data = 160, 160, (128, 128)
+    w = np.zeros((rows, cols), np.float32)
+    w[: data[0], : data[1]] = 1.0
+    img = np.full((rows, cols), 0.5, np.float32)
+    z = np.random.default_rng(3).standard_normal((rows, cols)).astype(np.float32)
+    light = Light(30.0, 70.0).vector
+    base = energy(img, w, light, 0.8, z)
+    half = energy(img, w, light, 0.8, z, data_shape=data, lowfreq_weight=0.3, lowfreq_fine_factor=0.5)
+    same = energy(img, w, light, 0.8, z, data_shape=data, lowfreq_weight=0.15)
+    assert half - base == pytest.approx(same - base, rel=1e-5)
+    assert half - base > 0
+
+
 def test_coarse_levels_of_a_plain_image_hold_its_plane(monkeypatch):
     # Random bumps of 512 px lit at 45° (light given), whose plane through the image slopes by
     # 3e-4 px / px at a quarter of the resolution: with the plane term's usual weight the
