@@ -831,9 +831,9 @@ def estimated_light_note(light: Light, periodic: bool = True) -> str:
     if not periodic:
         note += (
             "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
-            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 25 estimates left"
-            " the heights more than 5 points worse than the true light's, 11 of them not flagged"
-            " UNRELIABLE (the true light turned 3° in tilt does that to 32 of them): give --light"
+            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 27 estimates left"
+            " the heights more than 5 points worse than the true light's, 12 of them not flagged"
+            " UNRELIABLE (the true light turned 3° in tilt does that to 34 of them): give --light"
             " when it is known"
         )
     return note
@@ -1417,7 +1417,7 @@ def shape_from_shading(
         random bumps at 45°: 0.07 periodic, 0.24 as a plain image). On a plain image those
         offsets are left to the thin plate and the prior, and the energy's own minimum is off:
         random bumps at 60°, 10 seeds, the minimum nearest the true surface has normalised
-        errors 0.26-0.36 (the default 0.23-0.39; ``bench/bench_shading.py``).
+        errors 0.25-0.32 (the default 0.23-0.36; ``bench/bench_shading.py``).
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
