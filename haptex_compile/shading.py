@@ -185,24 +185,24 @@ COARSE_PLANE_LEVEL = 2
 # On an image with free edges, each line along the light has an unknown height offset (its
 # strip does not close on itself as on a tile); the flat-on-average prior and the thin plate
 # set them. On the finest level of an image of side N < PLAIN_FINE_PRIOR_PX, that prior's
-# weight (and its plane term's) is multiplied by (N / PLAIN_FINE_PRIOR_PX)² (solve_variational's
-# lowfreq_fine_factor; the coarse levels keep it whole, and the spectral prior is not changed).
-# Why: against the prior, the thin plate's hold on those long waves grows as 1 / N² (k⁴ against
-# k² at a given number of cycles per image), and on small images it sets the offsets better
-# than the prior. Measured on random bumps as plain images (light given, 10 seeds, mean / worst
-# error / seeds above 0.3, one run each against the factor 1): 256 px at 60° 0.287 / 0.385 / 3
-# -> 0.273 / 0.361 / 2, at 45° 0.227 -> 0.210, at 15° 0.244 / 0.322 / 1 -> 0.211 / 0.267 / 0;
-# 128 px 0.471 / 0.411 / 0.428 -> 0.409 / 0.340 / 0.309 at 60° / 45° / 15°; 384 and 512 px
-# within 0.004 (worst at 15°, 384 px 0.281 -> 0.291); 768 px (4 seeds, factor 0.56) within
-# 0.002 at 45-60° but 0.183 -> 0.189 at 15° (each seed 0.004-0.010 worse, the trend of 1 Mpx
-# below); bench_shading's 90 random crops: random
-# bumps mean 0.250 -> 0.228, worst 0.541 -> 0.377, plain weave 0.240 -> 0.235, sphere caps
-# (prior dropped) the same; its plain table's Brownian surface 0.839 / 0.808 / 0.820 / 0.674 ->
-# 0.814 / 0.804 / 0.792 / 0.578; with the light estimated (bench_light's 60 crops) the same
-# within 0.006 on average; with noise of sigma 0.01 (256 px) 0.298 / 0.243 / 0.307 -> 0.288 /
-# 0.233 / 0.293, but with sigma 0.03 worse at 15° (0.646 -> 0.727: both far off). The same
-# factor on 1 Mpx images (0.1 or 0.01) made them worse at 15° (seeds 2, 5: 0.189 / 0.234 ->
-# 0.225-0.241 / 0.285-0.301), hence full weight from PLAIN_FINE_PRIOR_PX up.
+# weight (and its plane term's) is multiplied by (N / PLAIN_FINE_PRIOR_PX)²
+# (solve_variational's lowfreq_fine_factor; the coarse levels keep it whole, and the spectral
+# prior is not changed). Why: against the prior, the thin plate's hold on those long waves
+# grows as 1 / N² (k⁴ against k² at a given number of cycles per image), and on small images it
+# sets the offsets better than the prior. Measured on random bumps as plain images (light
+# given, 10 seeds, mean / worst error / seeds above 0.3, one run each against the factor 1):
+# 256 px at 60° 0.287 / 0.385 / 3 -> 0.273 / 0.361 / 2, at 45° 0.227 -> 0.210, at 15° 0.244 /
+# 0.322 / 1 -> 0.211 / 0.267 / 0; 128 px 0.471 / 0.411 / 0.428 -> 0.409 / 0.340 / 0.309 at 60°
+# / 45° / 15°; 384 and 512 px within 0.004 (worst at 15°, 384 px 0.281 -> 0.291); 768 px (4
+# seeds, factor 0.56) within 0.002 at 45-60° but 0.183 -> 0.189 at 15° (each seed 0.004-0.010
+# worse, the trend of 1 Mpx below); bench_shading's 90 random crops: random bumps mean 0.250 ->
+# 0.228, worst 0.541 -> 0.377, plain weave 0.240 -> 0.235, sphere caps (prior dropped) the
+# same; its plain table's Brownian surface 0.839 / 0.808 / 0.820 / 0.674 -> 0.814 / 0.804 /
+# 0.792 / 0.578; with the light estimated (bench_light's 60 crops) the same within 0.006 on
+# average; with noise of sigma 0.01 (256 px) 0.298 / 0.243 / 0.307 -> 0.288 / 0.233 / 0.293,
+# but with sigma 0.03 worse at 15° (0.646 -> 0.727: both far off). The same factor on 1 Mpx
+# images (0.1 or 0.01) made them worse at 15° (seeds 2, 5: 0.189 / 0.234 -> 0.225-0.241 /
+# 0.285-0.301), hence full weight from PLAIN_FINE_PRIOR_PX up.
 PLAIN_FINE_PRIOR_PX = 1024
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
