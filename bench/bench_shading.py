@@ -523,13 +523,18 @@ def _band_power_ratios(height_um: np.ndarray, truth_um: np.ndarray, tilt_deg: fl
     return out
 
 
-def _solver_inputs(case: dict) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The case's image as the default solver takes it (domain image, weights, keyword
-    arguments: censored pixels), as :func:`shape_from_shading` prepares it for a tile."""
-    img = case["image"]
-    valid = valid_pixels(img)
-    dom_img, dom_w, kwargs = _solve_domain(img, valid, _censored_pixels(img), periodic=True)
+def _domain_inputs(img: np.ndarray, periodic: bool = True, light: Light | None = None,
+                   albedo: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """`img` as the default solver takes it (domain image, float32 weights, the domain's
+    keyword arguments), as :func:`shape_from_shading` prepares it for a tile or, with the
+    light and the starting albedo, a plain image."""
+    dom_img, dom_w, kwargs = _solve_domain(img, valid_pixels(img), _censored_pixels(img), periodic, light, albedo)
     return dom_img, dom_w.astype(np.float32), kwargs
+
+
+def _solver_inputs(case: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The case's tile image as the default solver takes it (see :func:`_domain_inputs`)."""
+    return _domain_inputs(case["image"])
 
 
 def _undamped_height(case: dict) -> np.ndarray:
@@ -616,10 +621,8 @@ def _plain_minimum_rows(n: int, quick: bool) -> tuple[list[str], str]:
     for seed in range(2 if quick else SEED_COUNT):
         truth = ts.random_bumps((n, n), PIXEL_UM, seed=seed)
         img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=False)
-        valid = valid_pixels(img)
-        albedo = _moment_albedo(img[valid], light.slant_deg)
-        dom_img, dom_w, kwargs = _solve_domain(img, valid, _censored_pixels(img), False, light, albedo)
-        weight = dom_w.astype(np.float32)
+        albedo = _moment_albedo(img[valid_pixels(img)], light.slant_deg)
+        dom_img, weight, kwargs = _domain_inputs(img, False, light, albedo)
         settings = {**DEFAULT_SOLVER, **shading.PLAIN_SOLVER, **kwargs}
         z, a = solve_variational(dom_img, weight, light.vector, albedo, **settings)
         height = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False).height
