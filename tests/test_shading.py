@@ -865,6 +865,14 @@ def test_on_block_means_the_prior_charges_the_same_tilt():
         assert extra == pytest.approx(want, rel=1e-4)
 
 
+def _plain_domain(shape, data):
+    """Data weights (1 on the top-left `data` box) and a uniform image on a plain image's
+    periodic domain of `shape`."""
+    w = np.zeros(shape, np.float32)
+    w[: data[0], : data[1]] = 1.0
+    return w, np.full(shape, 0.5, np.float32)
+
+
 def test_the_energy_of_a_plain_domain_includes_its_prior():
     # energy() with a plain image's domain keywords adds the finest level's prior: a wave
     # A cos(w y) across a light along x costs 0.5 x mu x phi(w) x sin²(w) x A² x N / 2 more
@@ -873,9 +881,7 @@ def test_the_energy_of_a_plain_domain_includes_its_prior():
     from haptex_compile.shading_variational import energy
 
     rows, cols, data = 288, 288, (256, 256)
-    w = np.zeros((rows, cols), np.float32)
-    w[: data[0], : data[1]] = 1.0
-    img = np.full((rows, cols), 0.5, np.float32)
+    w, img = _plain_domain((rows, cols), data)
     light = Light(40.0, 0.0).vector
     yy, xx = np.mgrid[:rows, :cols].astype(np.float32)
     albedo, weight, amp = 0.8, 0.3, 2.0
@@ -939,9 +945,7 @@ def test_the_fine_prior_factor_scales_the_finest_levels_prior():
     from haptex_compile.shading_variational import energy
 
     rows, cols, data = 160, 160, (128, 128)
-    w = np.zeros((rows, cols), np.float32)
-    w[: data[0], : data[1]] = 1.0
-    img = np.full((rows, cols), 0.5, np.float32)
+    w, img = _plain_domain((rows, cols), data)
     z = np.random.default_rng(3).standard_normal((rows, cols)).astype(np.float32)
     light = Light(30.0, 70.0).vector
     base = energy(img, w, light, 0.8, z)
