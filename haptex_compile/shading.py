@@ -71,7 +71,7 @@ WEAVE_VISIBILITY_MIN = 0.15
 # lit normal with the light (cos 35°), and the slant bias that assumption can cause.
 SEARCH_SIDE_PX = 96
 # Worker processes that solve the search's candidate lights side by side, and the extra
-# starts of a tile lit along its axes or a weave direction (_held_starts, _fine_starts; None:
+# starts of a tile lit along its axes or a weave direction (_held_starts, _fine_starts, _bare_tile_starts; None:
 # one per CPU this process may use; 1: in the calling process; see forked_map). The same
 # results either way.
 SEARCH_PROCESSES: int | None = None
@@ -1528,8 +1528,8 @@ def shape_from_shading(
         warnings.append(
             f"light tilt {light.tilt_deg:.1f}° within {ALIGNED_TILT_DEG:g}° of the periodic"
             f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
-            " no slope along it and the shading barely fixes them (solved from 3 starts of the"
-            " pyramid and 3 at full resolution, the lowest energy kept); the heights may be far"
+            " no slope along it and the shading barely fixes them (solved from 2 starts of the"
+            " pyramid and 1 at full resolution, the lowest energy kept); the heights may be far"
             " off (bench: normalised errors up to 0.47, a sphere cap along the diagonal at 60°);"
             f" light the fabric at least {ALIGNED_TILT_DEG:g}° away from its weave's axes and"
             " diagonals"
@@ -1562,16 +1562,18 @@ def shape_from_shading(
     z, albedo = solve_variational(dom_img, weight, light.vector, albedo, z0=z0, **kwargs)
     if (aligned is not None or along_weave is not None) and z0 is None:
         starts = [(z, albedo)]
-        if aligned is not None:
-            starts += _held_starts(dom_img, weight, light, albedo_start, kwargs)
-        from_cell = None
-        if along_weave is not None:
+        if along_weave is None:
+            # A bare tile (no lattice given) lit along its axis or diagonal.
+            starts += _bare_tile_starts(dom_img, weight, light, albedo_start, kwargs, domain_kwargs)
+        else:
+            if aligned is not None:
+                starts += _held_starts(dom_img, weight, light, albedo_start, kwargs)
             # The raw intensities (shadows and highlights included; unknown pixels NaN) for
             # the small window's tile: the domain image has its invalid pixels filled.
             known = np.isfinite(img) if mask is None else np.isfinite(img) & np.asarray(mask, bool)
             from_cell = _start_from_cell(dom_img, weight, light, albedo_start, domain_kwargs,
                                          weave_basis_px, np.where(known, img, np.nan))
-        starts += from_cell or _fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
+            starts += from_cell or _fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
         z, albedo = _lowest_energy(dom_img, weight, light, domain_kwargs, starts, weave_basis_px)
     z = z[:rows, :cols].astype(np.float64)
     gy, gx = np.gradient(z)
@@ -1585,10 +1587,12 @@ def shape_from_shading(
     return SfsResult(height, light, float(albedo), used_method, tuple(warnings))
 
 
-# Light along a periodic tile's axis or diagonal: the solve is repeated with the waves that
-# have no slope along the light held on the coarse levels (from these pyramid levels on), and
-# the result of lowest energy is kept (see _held_starts).
+# Light along a weave's window's axis or diagonal and its weave direction: the solve is
+# repeated with the waves that have no slope along the light held on the coarse levels (from
+# these pyramid levels on), and the result of lowest energy is kept (see _held_starts).
 HELD_START_LEVELS = (2, 1)
+# A tile with no lattice given holds them from this level only (see _bare_tile_starts).
+BARE_TILE_HELD_LEVEL = 2
 
 
 def _lowest_energy(img, weight, light: Light, domain_kwargs: dict, starts: list, basis_px=None):
@@ -1690,28 +1694,66 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     lights, and a lattice along a weave direction) 12.5 -> 8.7 s in all, random bumps of
     512 px and 1024 px lit along x 5.7 -> 4.1 s and 17.1 -> 15.8 s.
     """
-    from haptex_compile.shading_variational import solve_variational
-
-    def solve(a0, z_start=None, steps=FINE_START_GN, **thin_plate):
-        return solve_variational(img, weight, light.vector, a0, z0=z_start, max_levels=1, fine_gn=steps,
-                                 fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **thin_plate, **domain_kwargs)
-
     def flat_and_negated():
-        zf, af = solve(albedo0)
+        zf, af = _full_resolution_solve(img, weight, light, albedo0, domain_kwargs)
         invisible = _unseen_waves(zf, light)
-        return [(zf, af)] + ([] if invisible is None else [solve(af, zf - 2.0 * invisible)])
-
-    def continuation():
-        zc, ac = None, albedo0
-        for lam in FINE_START_LAMS:
-            zc, ac = solve(ac, zc, FINE_START_GN // len(FINE_START_LAMS), lam=lam)
-        return [(zc, ac)]
+        return [(zf, af)] + ([] if invisible is None else
+                             [_full_resolution_solve(img, weight, light, af, domain_kwargs, zf - 2.0 * invisible)])
 
     # The two chains are independent: side by side.
-    chains = (flat_and_negated, continuation)
+    chains = (flat_and_negated, lambda: [_continuation_start(img, weight, light, albedo0, domain_kwargs)])
     with forked_map(lambda k: chains[k](), SEARCH_PROCESSES) as map_:
         first, second = map_([(0,), (1,)])
     return first + second
+
+
+def _full_resolution_solve(img, weight, light: Light, albedo0: float, domain_kwargs: dict, z_start=None,
+                           steps: int = FINE_START_GN, **thin_plate):
+    """One solve of the full-resolution starts (see :func:`_fine_starts`): `steps`
+    Gauss-Newton steps on the domain only, from `z_start` (flat by default)."""
+    from haptex_compile.shading_variational import solve_variational
+
+    return solve_variational(img, weight, light.vector, albedo0, z0=z_start, max_levels=1, fine_gn=steps,
+                             fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **thin_plate, **domain_kwargs)
+
+
+def _continuation_start(img, weight, light: Light, albedo0: float, domain_kwargs: dict):
+    """The continuation of :func:`_fine_starts`: from flat at full resolution, with the thin
+    plate's weight stepped down through ``FINE_START_LAMS`` (smooth shapes first); (z, albedo)."""
+    zc, ac = None, albedo0
+    for lam in FINE_START_LAMS:
+        zc, ac = _full_resolution_solve(img, weight, light, ac, domain_kwargs, zc,
+                                        FINE_START_GN // len(FINE_START_LAMS), lam=lam)
+    return zc, ac
+
+
+def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, domain_kwargs: dict) -> list:
+    """The starts of a tile with no lattice given, lit along its axis or diagonal: the pyramid
+    with the waves that have no slope along the light held from level ``BARE_TILE_HELD_LEVEL``
+    on (`kwargs`: the main solve's settings), and the continuation at full resolution
+    (:func:`_continuation_start`), side by side; the caller keeps the lowest energy.
+
+    Of the starts a weave's tile runs (:func:`_held_starts`, :func:`_fine_starts`), these
+    two are the ones that were kept: measured at 256, 512 and 1024 px (the bench's four
+    surfaces and random bumps of seeds 5 and 9, 9 at 1024 px; slants 30°, 45° and 60°, light
+    along x and along the diagonal: 36, 36 and 30 cases), the lowest energy was the
+    continuation's in 24, 22 and 12 cases, the plain pyramid's in 7, 10 and 11, the start held
+    from level 2 in 3, 4 and 6, and the flat start or its negation in 2, 0 and 1 (the plain
+    weave along the diagonal at 45° and 60° at 256 px, the bumps of seed 5 along x at 60° at
+    1024 px, where the continuation came within 0.1 % of their energy and had the same
+    height error or a lower one: 0.005 -> 0.006, 0.009 -> 0.009, 0.068 -> 0.062); the start
+    held from level 1, in none. Without the other three the heights are the same but for
+    those cases (the bench's surfaces at 256 px, 24 lights along x and the diagonal; at 512
+    and 1024 px, 12 lights), and a solve takes 0.47 s instead of 0.94 s at 256 px, 1.8 s
+    instead of 4.0 s at 512 px and 6.1 s instead of 15.9 s at 1024 px (means, one run each).
+    """
+    from haptex_compile.shading_variational import solve_variational
+
+    chains = (lambda: solve_variational(img, weight, light.vector, albedo0, hold_from_level=BARE_TILE_HELD_LEVEL,
+                                        **kwargs),
+              lambda: _continuation_start(img, weight, light, albedo0, domain_kwargs))
+    with forked_map(lambda k: chains[k](), SEARCH_PROCESSES) as map_:  # independent: side by side
+        return map_([(0,), (1,)])
 
 
 # The full-resolution starts of a weave's tile run on a small periodic window of its lattice

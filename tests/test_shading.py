@@ -1162,7 +1162,7 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_star
 
     # Random bumps along the y axis: the coarse levels set the waves across the light wrong
     # from every pyramid start (measured 0.758 from one, 0.311 from the held starts); the
-    # full-resolution starts (shading._fine_starts) meet the 30 % (measured 0.134).
+    # full-resolution continuation (shading._bare_tile_starts) meets the 30 % (measured 0.134).
     h = surfaces256["bumps"]
     for tilt, warned in ((270.0, True), (273.0, False)):
         light = Light(60.0, tilt)
@@ -1252,10 +1252,11 @@ def test_a_weave_window_is_not_treated_as_lit_along_its_own_diagonal(monkeypatch
     light = Light(45.0, float(np.degrees(np.arctan2(96, 208))))
     img = render_lambertian(truth, PX, light, 0.8, periodic=True)
     calls = []
-    held = shading._held_starts
-    monkeypatch.setattr(shading, "_held_starts", lambda *a: calls.append("held") or held(*a))
+    for name in ("_held_starts", "_bare_tile_starts", "_fine_starts"):
+        starts = getattr(shading, name)
+        monkeypatch.setattr(shading, name, lambda *a, _n=name, _f=starts: calls.append(_n) or _f(*a))
     bare = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
-    assert any("diagonal" in w for w in bare.warnings) and calls == ["held"]
+    assert any("diagonal" in w for w in bare.warnings) and calls == ["_bare_tile_starts"]
     calls.clear()
     weave = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True, weave_basis_px=np.diag([16.0, 16.0]))
     assert not weave.warnings and calls == []
@@ -1541,9 +1542,9 @@ def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
 
 
 def test_the_extra_starts_give_the_same_heights_in_worker_processes(monkeypatch, bumps128):
-    # Lit along the tile's x axis: two held starts and the full-resolution starts (two
-    # independent chains) run side by side in forked workers; the heights are the same bit
-    # for bit, and only the main pyramid's solve runs here.
+    # Lit along the tile's x axis: the held start and the full-resolution continuation run
+    # side by side in forked workers; the heights are the same bit for bit, and only the main
+    # pyramid's solve runs here.
     import sys
 
     from haptex_compile import shading_variational
@@ -1559,8 +1560,8 @@ def test_the_extra_starts_give_the_same_heights_in_worker_processes(monkeypatch,
         heights[processes] = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height
         here[processes] = len(calls)
     assert np.array_equal(heights[2], heights[1])
-    # one pyramid, two held starts, flat, negated and the two-step continuation
-    assert here[1] == 7
+    # one pyramid, the held start and the two-step continuation
+    assert here[1] == 4
     if sys.platform.startswith("linux"):
         assert here[2] == 1
 
