@@ -71,9 +71,9 @@ WEAVE_VISIBILITY_MIN = 0.15
 # lit normal with the light (cos 35°), and the slant bias that assumption can cause.
 SEARCH_SIDE_PX = 96
 # Worker processes that solve the search's candidate lights side by side, and the extra
-# starts of a tile lit along its axes or a weave direction (_held_starts, _fine_starts, _bare_tile_starts; None:
-# one per CPU this process may use; 1: in the calling process; see forked_map). The same
-# results either way.
+# starts of a tile lit along its axes or a weave direction (_bare_tile_starts, _held_starts,
+# _fine_starts; None: one per CPU this process may use; 1: in the calling process; see
+# forked_map). The same results either way.
 SEARCH_PROCESSES: int | None = None
 # The final stage's image side at most (the whole image when it is smaller; see _refine_light).
 FINAL_SIDE_PX = 256
@@ -1587,7 +1587,7 @@ def shape_from_shading(
     return SfsResult(height, light, float(albedo), used_method, tuple(warnings))
 
 
-# Light along a weave's window's axis or diagonal and its weave direction: the solve is
+# Light nearly along a weave direction and along its window's axis or diagonal: the solve is
 # repeated with the waves that have no slope along the light held on the coarse levels (from
 # these pyramid levels on), and the result of lowest energy is kept (see _held_starts).
 HELD_START_LEVELS = (2, 1)
@@ -1692,7 +1692,8 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     :func:`_held_starts`' two solves (``SEARCH_PROCESSES``; the same heights): measured on 2
     cores, bench tiles of 256 px lit along their axes and diagonals (three surfaces, three
     lights, and a lattice along a weave direction) 12.5 -> 8.7 s in all, random bumps of
-    512 px and 1024 px lit along x 5.7 -> 4.1 s and 17.1 -> 15.8 s.
+    512 px and 1024 px lit along x 5.7 -> 4.1 s and 17.1 -> 15.8 s. A tile with no lattice
+    given now runs the continuation only (:func:`_bare_tile_starts`).
     """
     def flat_and_negated():
         zf, af = _full_resolution_solve(img, weight, light, albedo0, domain_kwargs)
@@ -1735,17 +1736,18 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
 
     Of the starts a weave's tile runs (:func:`_held_starts`, :func:`_fine_starts`), these
     two are the ones that were kept: measured at 256, 512 and 1024 px (the bench's four
-    surfaces and random bumps of seeds 5 and 9, 9 at 1024 px; slants 30°, 45° and 60°, light
+    surfaces and random bumps of seeds 5 and 9, only 5 at 1024 px; slants 30°, 45° and 60°, light
     along x and along the diagonal: 36, 36 and 30 cases), the lowest energy was the
     continuation's in 24, 22 and 12 cases, the plain pyramid's in 7, 10 and 11, the start held
     from level 2 in 3, 4 and 6, and the flat start or its negation in 2, 0 and 1 (the plain
     weave along the diagonal at 45° and 60° at 256 px, the bumps of seed 5 along x at 60° at
-    1024 px, where the continuation came within 0.1 % of their energy and had the same
-    height error or a lower one: 0.005 -> 0.006, 0.009 -> 0.009, 0.068 -> 0.062); the start
-    held from level 1, in none. Without the other three the heights are the same but for
-    those cases (the bench's surfaces at 256 px, 24 lights along x and the diagonal; at 512
-    and 1024 px, 12 lights), and a solve takes 0.47 s instead of 0.94 s at 256 px, 1.8 s
-    instead of 4.0 s at 512 px and 6.1 s instead of 15.9 s at 1024 px (means, one run each).
+    1024 px, where the continuation came within 0.1 % of their energy, with height errors
+    0.005 -> 0.006, 0.009 -> 0.009 and 0.068 -> 0.062); the start held from level 1, in none.
+    Measured without the other three on the bench's four surfaces (24 lights along x and the
+    diagonal at 256 px, 12 at 512 and 1024 px): the same errors (to 0.001) but for the plain
+    weave along the diagonal at 45° (256 px: 0.005 -> 0.006), and a solve takes 0.47 s
+    instead of 0.94 s at 256 px, 1.8 s instead of 4.0 s at 512 px and 6.1 s instead of 15.9 s
+    at 1024 px (means, one run each).
     """
     from haptex_compile.shading_variational import solve_variational
 

@@ -1161,8 +1161,9 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_star
     assert e["kept"] < 0.8 * e["one start"]
 
     # Random bumps along the y axis: the coarse levels set the waves across the light wrong
-    # from every pyramid start (measured 0.758 from one, 0.311 from the held starts); the
-    # full-resolution continuation (shading._bare_tile_starts) meets the 30 % (measured 0.134).
+    # from every pyramid start (measured 0.758 from one, 0.311 from the start held from
+    # level 2); the full-resolution continuation (shading._bare_tile_starts) meets the
+    # issue's 30 % (measured 0.134).
     h = surfaces256["bumps"]
     for tilt, warned in ((270.0, True), (273.0, False)):
         light = Light(60.0, tilt)
