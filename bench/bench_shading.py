@@ -1016,12 +1016,13 @@ def run(quick: bool = False) -> str:
         lines.append(f"| {label} | " + " | ".join(f"{t[label]:.2f}" for t in times)
                      + f" | {times[0][label] / ts_mp:.2f} |")
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
-              " pyramid, two held starts and two chains of full-resolution starts, the lowest energy"
-              " kept) and 3° off it (the pyramid alone), random bumps (seed 5), light given, one run"
-              " each: seconds per megapixel and normalised height error. The full-resolution starts"
-              " cost about the same per pixel at every size, 88 Gauss-Newton steps of 20 CG"
-              " iterations; a weave's tile runs them on a small window of its lattice instead (the"
-              " photo pipeline), a tile with no lattice given does not:", "",
+              " pyramid, the pyramid holding the waves across the light from level 2, and the"
+              " full-resolution continuation, the lowest energy kept: `shading._bare_tile_starts`)"
+              " and 3° off it (the pyramid alone), random bumps (seed 5), light given, one run"
+              " each: seconds per megapixel and normalised height error. The continuation costs"
+              " about the same per pixel at every size, 30 Gauss-Newton steps of 20 CG iterations;"
+              " a weave's tile runs its full-resolution starts on a small window of its lattice"
+              " instead (the photo pipeline), a tile with no lattice given cannot:", "",
               "| side (px) | along x (45°, 0°): s per megapixel | error | 3° off (45°, 3°): s per megapixel | error |",
               "| --- | --- | --- | --- | --- |",
               *_aligned_timing_rows((256, 512) if quick else (256, 512, 1024))]
