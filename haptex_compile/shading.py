@@ -1428,9 +1428,9 @@ def shape_from_shading(
         known (a weave photo's tile or image). Light nearly along one of its weave directions
         (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and, on a
         periodic tile, solved from more starts (see :func:`_start_from_cell`). Without it,
-        light along a tile's axes and diagonals is; with it, only when the light is also near
-        a weave direction (a weave's window is cut to repeat the lattice, and its own axes
-        mean nothing).
+        light along a tile's axes and diagonals is (see :func:`_bare_tile_starts`); with it,
+        only when the light is also near a weave direction (a weave's window is cut to repeat
+        the lattice, and its own axes mean nothing).
 
     Returns
     -------
