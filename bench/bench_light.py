@@ -63,9 +63,9 @@ def run(quick: bool = False) -> str:
     stats: dict[str, dict] = {}
     for name, truth, img, light in random_crops(4 if quick else CROPS_PER_SURFACE):
         given = _given_error(img, truth, light)
-        s = stats.setdefault(name, {"given": [], "tilt_off": 0, "preferred": 0, **{k: {"err": [], "worse": 0, "worse_flagged": 0,
-                                                                        "false_flags": 0, "s": 0.0, "d_slant": [],
-                                                                        "d_tilt": []} for k in variants}})
+        per_variant = {k: {"err": [], "worse": 0, "worse_flagged": 0, "false_flags": 0, "s": 0.0, "d_slant": [],
+                           "d_tilt": []} for k in variants}
+        s = stats.setdefault(name, {"given": [], "tilt_off": 0, "preferred": 0, **per_variant})
         s["given"].append(given)
         turned = max(_given_error(img, truth, Light(light.slant_deg, light.tilt_deg + sign * TILT_OFF_DEG))
                      for sign in (-1, 1))
@@ -81,7 +81,7 @@ def run(quick: bool = False) -> str:
                 v["worse"] += 1
                 v["worse_flagged"] += flagged
                 if key == "default":
-                    # The search's own objective at its estimate against at the true light.
+                    # The search's own objective, at its estimate and at the true light.
                     misfits = [shading.light_misfit(img, lt, periodic=False)[0] for lt in (est, light)]
                     s["preferred"] += misfits[0] < misfits[1]
             else:
