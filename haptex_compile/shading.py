@@ -11,6 +11,7 @@ albedo); :func:`scale_relief` fixes it from a stated relief.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -1646,13 +1647,23 @@ def _held_starts(img, weight, light: Light, albedo0: float, kwargs: dict) -> lis
     (30°, along x); the sphere cap along the diagonal at 60° stays at 0.470 (no start finds
     its minimum), Brownian surfaces within 0.02 except one at 0.053 -> 0.076.
     """
+    return _side_by_side(*(functools.partial(_held_start, img, weight, light, albedo0, kwargs, level)
+                           for level in HELD_START_LEVELS))
+
+
+def _held_start(img, weight, light: Light, albedo0: float, kwargs: dict, level: int):
+    """The pyramid solve (z, albedo) with `kwargs` (the main solve's settings), holding the
+    waves with no slope along the light from pyramid level `level` on."""
     from haptex_compile.shading_variational import solve_variational
 
-    def held(level):
-        return solve_variational(img, weight, light.vector, albedo0, hold_from_level=level, **kwargs)
+    return solve_variational(img, weight, light.vector, albedo0, hold_from_level=level, **kwargs)
 
-    with forked_map(held, SEARCH_PROCESSES) as map_:  # independent solves, side by side
-        return map_([(level,) for level in HELD_START_LEVELS])
+
+def _side_by_side(*calls) -> list:
+    """The results of the independent zero-argument `calls`, in order, run side by side in
+    forked workers (``SEARCH_PROCESSES``; the same results in one process)."""
+    with forked_map(lambda k: calls[k](), SEARCH_PROCESSES) as map_:
+        return map_([(k,) for k in range(len(calls))])
 
 
 # Full-resolution starts for light along a tile's axis or diagonal or nearly along a weave
@@ -1702,9 +1713,8 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
                              [_full_resolution_solve(img, weight, light, af, domain_kwargs, zf - 2.0 * invisible)])
 
     # The two chains are independent: side by side.
-    chains = (flat_and_negated, lambda: [_continuation_start(img, weight, light, albedo0, domain_kwargs)])
-    with forked_map(lambda k: chains[k](), SEARCH_PROCESSES) as map_:
-        first, second = map_([(0,), (1,)])
+    first, second = _side_by_side(flat_and_negated,
+                                  lambda: [_continuation_start(img, weight, light, albedo0, domain_kwargs)])
     return first + second
 
 
@@ -1749,13 +1759,8 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
     instead of 0.94 s at 256 px, 1.8 s instead of 4.0 s at 512 px and 6.1 s instead of 15.9 s
     at 1024 px (means, one run each).
     """
-    from haptex_compile.shading_variational import solve_variational
-
-    chains = (lambda: solve_variational(img, weight, light.vector, albedo0, hold_from_level=BARE_TILE_HELD_LEVEL,
-                                        **kwargs),
-              lambda: _continuation_start(img, weight, light, albedo0, domain_kwargs))
-    with forked_map(lambda k: chains[k](), SEARCH_PROCESSES) as map_:  # independent: side by side
-        return map_([(0,), (1,)])
+    return _side_by_side(lambda: _held_start(img, weight, light, albedo0, kwargs, BARE_TILE_HELD_LEVEL),
+                         lambda: _continuation_start(img, weight, light, albedo0, domain_kwargs))
 
 
 # The full-resolution starts of a weave's tile run on a small periodic window of its lattice
