@@ -7,7 +7,7 @@ with ``shape_from_shading(periodic=False)``: the normalised height error with th
 and estimated, how many estimates leave the heights more than 5 points worse than the given
 light and how many of those the estimate flagged UNRELIABLE (``Light.albedo_at_bound``), and
 flags on estimates that were not worse. Baseline, same run: the light search without its edge
-band on plain images (``shading.PLAIN_MISFIT_BAND = 0``: the misfit of each candidate light
+band on plain images (``shading_light.PLAIN_MISFIT_BAND = 0``: the misfit of each candidate light
 includes the seam of its periodic solve). What the 5 points ask of an estimate: how many crops
 come out more than 5 points worse with the given light turned by ``TILT_OFF_DEG`` in tilt (the
 worse of the two ways), the estimates' median slant and tilt-axis errors, and how many of the
@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_shading import PIXEL_UM, random_crops  # noqa: E402
 
-from haptex_compile import shading  # noqa: E402
+from haptex_compile import shading, shading_light  # noqa: E402
 from haptex_compile.shading import (  # noqa: E402
     Light,
     normalised_height_error,
@@ -45,7 +45,7 @@ TILT_OFF_DEG = 3.0  # the given light turned this far in tilt, each way: the tar
 def _estimated(img, truth, band: float) -> tuple[float, bool, float, Light]:
     """Height error with the light estimated (edge band `band`), its flag, the seconds and the
     estimate."""
-    with mock.patch.object(shading, "PLAIN_MISFIT_BAND", band):
+    with mock.patch.object(shading_light, "PLAIN_MISFIT_BAND", band):
         t0 = time.perf_counter()
         res = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=False)
         seconds = time.perf_counter() - t0
@@ -59,7 +59,7 @@ def _given_error(img, truth, light: Light) -> float:
 
 
 def run(quick: bool = False) -> str:
-    variants = {"without the band": 0.0, "default": shading.PLAIN_MISFIT_BAND}
+    variants = {"without the band": 0.0, "default": shading_light.PLAIN_MISFIT_BAND}
     stats: dict[str, dict] = {}
     for name, truth, img, light in random_crops(4 if quick else CROPS_PER_SURFACE):
         given = _given_error(img, truth, light)
@@ -95,7 +95,7 @@ def run(quick: bool = False) -> str:
         " UNRELIABLE, `Light.albedo_at_bound`); false flags = flagged estimates that were not worse;"
         " seconds of the estimated-light solves; the estimates' median errors, slant and tilt axis."
         " Baseline, same run: the light search without its edge"
-        f" band (`shading.PLAIN_MISFIT_BAND = 0`; default {shading.PLAIN_MISFIT_BAND:g}). What {WORSE_BY * 100:g}"
+        f" band (`shading_light.PLAIN_MISFIT_BAND = 0`; default {shading_light.PLAIN_MISFIT_BAND:g}). What {WORSE_BY * 100:g}"
         f" points ask of an estimate: crops that come out more than that worse with the given light turned"
         f" by {TILT_OFF_DEG:g}° in tilt (the worse way). Last column: of the default's worse estimates,"
         " those that the search's own misfit (`shading.light_misfit`) ranks above the true light (its"

@@ -47,8 +47,9 @@ from haptex_compile import tiles  # noqa: E402
 from haptex_compile.known_surfaces import rms_slope  # noqa: E402
 from haptex_compile.photo import heights_at_image_px, photo_surface  # noqa: E402
 from haptex_compile.shading import (  # noqa: E402
-    WEAVE_VISIBILITY_MIN, Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
+    Light, normalised_height_error, render_lambertian, tilt_axis_difference_deg,
 )
+from haptex_compile.shading_starts import WEAVE_VISIBILITY_MIN  # noqa: E402
 from haptex_compile.sources import SourceOptions  # noqa: E402
 from haptex_compile.tables import mean_tactile  # noqa: E402
 from haptex_compile.synth_images import lattice_relief, stretch_from_centre, weave_image  # noqa: E402
@@ -180,7 +181,7 @@ def _weave_direction_rows(quick: bool) -> str:
             " lattice's directions; normalised height error over every other pixel, w = warned (`shading.weave_visibility`,"
             f" sin(slant) x sin(angle to t1, t2, t1 + t2 or t1 - t2) below {WEAVE_VISIBILITY_MIN:g}: those are also solved"
             " from 2-3 more starts at full resolution on a small periodic window of the lattice, polished on the"
-            " surface's window, `shading._start_from_cell`). The profiles across a direction"
+            " surface's window, `shading_starts._start_from_cell`). The profiles across a direction"
             " the light runs along have no slope along it, and the shading sees them only at second order:", "",
             "| relief | lattice t1; t2 (px) | along | slant (°) | " + " | ".join(f"{o:g}°" for o in OFFSETS_DEG) + " |",
             "| --- | --- | --- | --- | " + " | ".join("---" for _ in OFFSETS_DEG) + " |"]

@@ -36,7 +36,7 @@ from unittest import mock
 import numpy as np
 
 from haptex_compile import known_surfaces as ts
-from haptex_compile import shading
+from haptex_compile import shading, shading_light
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.forked_map import worker_count
 from haptex_compile.sources import remove_plane
@@ -44,21 +44,20 @@ from haptex_compile.synth_images import lattice_relief
 from haptex_compile.tables import mean_tactile
 from haptex_compile.shading import (
     DEFAULT_SOLVER,
-    FINAL_SIDE_PX,
     Light,
     estimate_light,
     light_misfit,
     normalised_height_error,
     render_lambertian,
     shape_from_shading,
-    _censored_pixels,
-    _moment_albedo,
     _solve_domain,
-    _tile_aligned_tilt,
     tilt_axis_difference_deg,
     tsai_shah,
     valid_pixels,
 )
+from haptex_compile.shading_image import _censored_pixels
+from haptex_compile.shading_light import FINAL_SIDE_PX, _moment_albedo
+from haptex_compile.shading_starts import _tile_aligned_tilt
 from haptex_compile.shading_variational import energy, reflectance, solve_variational
 
 PIXEL_UM = 20.0
@@ -396,7 +395,7 @@ def _margin_rows(n: int, quick: bool) -> list[str]:
     out = []
     for margin in sorted(MARGINS, key=lambda m: m != shading.PLAIN_MARGIN):
         with mock.patch.object(shading, "PLAIN_MARGIN", margin):
-            sides = [shading._solve_domain(im, np.ones(im.shape, bool), shading._censored_pixels(im), False)[0].shape[0]
+            sides = [shading._solve_domain(im, np.ones(im.shape, bool), _censored_pixels(im), False)[0].shape[0]
                      for im in images[0]]
             cells = []
             for (slant, tilt), (img, cropped) in zip(lights, images):
@@ -474,12 +473,12 @@ def _timing(n: int, light: Light, repeats: int = 2) -> dict[str, float]:
 
 def _light_search_rows(n: int, quick: bool) -> list[str]:
     """The light search's seconds on the bench's tiles, its candidate lights solved in worker
-    processes (the default) and in one process (``shading.SEARCH_PROCESSES = 1``, the
+    processes (the default) and in one process (``shading_light.SEARCH_PROCESSES = 1``, the
     baseline), same run, and whether the two estimates are the same."""
     lights = TIMING_LIGHTS[:1] if quick else TIMING_LIGHTS
     rows = ["", f"Light search (`estimate_light`) on the {n} px tiles, light estimated at each timing"
             " light: seconds with the candidate lights of each step solved side by side in"
-            f" {worker_count(shading.SEARCH_PROCESSES)} worker processes (`shading.SEARCH_PROCESSES`,"
+            f" {worker_count(shading_light.SEARCH_PROCESSES)} worker processes (`shading_light.SEARCH_PROCESSES`,"
             " default: one per CPU) and, baseline, in one process (`SEARCH_PROCESSES = 1`); and"
             " whether the estimates are the same, bit for bit:", "",
             "| surface | slant, tilt (°) | one process: s | worker processes: s | ratio | same light |",
@@ -489,8 +488,8 @@ def _light_search_rows(n: int, quick: bool) -> list[str]:
         for slant, tilt in lights:
             img = render_lambertian(h, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
             found, seconds = [], []
-            for processes in (1, shading.SEARCH_PROCESSES):
-                with mock.patch.object(shading, "SEARCH_PROCESSES", processes):
+            for processes in (1, shading_light.SEARCH_PROCESSES):
+                with mock.patch.object(shading_light, "SEARCH_PROCESSES", processes):
                     t0 = time.perf_counter()
                     found.append(estimate_light(img))
                     seconds.append(time.perf_counter() - t0)
@@ -954,7 +953,7 @@ def run(quick: bool = False) -> str:
               *_steep_rows(n, steep)]
     aligned_slants = (60.0,) if quick else (30.0, 45.0, 60.0)
     lines += ["", "Light along the tile's x axis (tilt 0°) and diagonal (45°), and 3° off them, given:"
-              " normalised height error (w = warned: `shading.ALIGNED_TILT_DEG`). A tile-sized wave"
+              " normalised height error (w = warned: `shading_starts.ALIGNED_TILT_DEG`). A tile-sized wave"
               " across the light has no slope along it; on a periodic tile such waves exist only"
               " for these directions (and the other axis and diagonal), where the shading fixes"
               " them only at second order. The issue's lights (tilts 30°, 120°, 200°, 300°) are"
@@ -1017,7 +1016,7 @@ def run(quick: bool = False) -> str:
                      + f" | {times[0][label] / ts_mp:.2f} |")
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
               " pyramid, the pyramid holding the waves across the light from level 2, and the"
-              " full-resolution continuation, the lowest energy kept: `shading._bare_tile_starts`)"
+              " full-resolution continuation, the lowest energy kept: `shading_starts._bare_tile_starts`)"
               " and 3° off it (the pyramid alone), random bumps (seed 5), light given, one run"
               " each: seconds per megapixel and normalised height error. The continuation costs"
               " about the same per pixel at every size, 30 Gauss-Newton steps of 20 CG iterations;"

@@ -1,6 +1,6 @@
 """Independent evaluations of one function, side by side in forked worker processes.
 
-The light search (:func:`haptex_compile.shading._refine_light`) solves one reduced image under
+The light search (:func:`haptex_compile.shading_light._refine_light`) solves one reduced image under
 dozens of candidate lights, in batches whose members do not depend on each other. Each solve
 is small (96-256 px) and mostly Python-level work that holds the GIL, so threads do not run
 two at once (measured: 12 solves of a 256 px image, 0.61 s on one thread, 0.67 s on two);

@@ -57,7 +57,7 @@ import numpy as np
 import scipy.fft as sfft
 import cv2
 
-from haptex_compile.shading import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
+from haptex_compile.shading_image import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 from haptex_compile.shading_kernels import (
     albedo_sums_rows, cg_direction_rows, cg_update_rows, energy_rows, gn_setup_rows, jacobian_rows, normal_rows,
     reflectance_rows,
@@ -841,7 +841,7 @@ def solve_variational(
         the coarse images darker than the coarse surface's shading).
     albedo_max : float
         Upper bound on the fitted albedo (the light search uses it: see
-        :func:`haptex_compile.shading._refine_light`).
+        :func:`haptex_compile.shading_light._refine_light`).
     z0 : ndarray, optional
         Starting height at full resolution (pixel units); flat by default.
     coarse_gn, mid_gn, fine_gn : int

@@ -150,7 +150,7 @@ def test_a_steep_light_flagged_at_its_bound_is_left_steep():
     # 58°, above the plateau where the image does not fix the slant (35° + slopes, capped at
     # PLATEAU_MAX_DEG). It is a steep light with the bound active, not that plateau: the search
     # below the plateau, which would settle 12° lower with the tilt 38° off, is not run.
-    from haptex_compile.shading import PLATEAU_MAX_DEG
+    from haptex_compile.shading_light import PLATEAU_MAX_DEG
     from haptex_compile.synth_images import weave_image
 
     t1, t2 = (14.2, -5.3), (6.1, 19.8)
@@ -216,7 +216,7 @@ def test_light_nearly_along_the_weave_is_warned_and_solved_from_full_resolution_
     # warns, and the starts at full resolution recover them (measured 0.048). 25° off the
     # yarns (sin 45° sin 25° = 0.30, above WEAVE_VISIBILITY_MIN) nothing is said and the
     # pyramid alone recovers the weave (measured 0.023).
-    from haptex_compile.shading import WEAVE_VISIBILITY_MIN
+    from haptex_compile.shading_starts import WEAVE_VISIBILITY_MIN
     from haptex_compile.synth_images import weave_image
 
     truth = 40.0 * weave_image((512, 512), (16.0, 0.0), (0.0, 16.0), kind="plain")

@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from haptex_compile import known_surfaces as ts
-from haptex_compile import shading
+from haptex_compile import shading, shading_image, shading_light, shading_starts
 from haptex_compile.shading import (
     Light,
-    _censored_pixels,
     SfsResult,
     estimate_light,
     normalised_height_error,
@@ -22,6 +21,7 @@ from haptex_compile.shading import (
     tsai_shah,
     valid_pixels,
 )
+from haptex_compile.shading_image import _censored_pixels
 from haptex_compile.shading_variational import reflectance
 
 PX = 20.0  # µm per pixel, as in the issue's anchors
@@ -331,7 +331,7 @@ def test_threaded_levels_give_identical_heights():
     # A level of 512 x 512 px runs its Gauss-Newton steps' elementwise work on two threads,
     # in blocks of rows, in the single thread's order: the heights must be bit-identical.
     # Sphere cap at 60°: attached shadows (one-sided terms) and the albedo projection.
-    from haptex_compile.shading import DEFAULT_SOLVER, _censored_pixels, _solve_domain, valid_pixels
+    from haptex_compile.shading import DEFAULT_SOLVER, _solve_domain, valid_pixels
     from haptex_compile.shading_variational import solve_variational
 
     n = 512
@@ -607,7 +607,7 @@ def test_steep_light_on_a_brownian_surface_with_shadowed_coarse_pixels_left_out(
     h = ts.brownian_surface((256, 256), PX, hurst=0.7, seed=2)
     light = Light(70.0, 250.0)
     img = render_lambertian(h, PX, light, 0.8, periodic=True)
-    assert 0.03 < np.mean(img <= shading.DARK) < 0.08
+    assert 0.03 < np.mean(img <= shading_image.DARK) < 0.08
     err = normalised_height_error(shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height, h)
     with mock.patch.dict(shading.DEFAULT_SOLVER, censored_data=True):
         fitted = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height
@@ -1132,7 +1132,7 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_star
     # atan(h / w); within ALIGNED_TILT_DEG of them the result is warned of, and 3° further
     # the bench's random bumps at 60° come back within the issue's 30 % (measured 0.023
     # against 0.758 along the axis).
-    from haptex_compile.shading import ALIGNED_TILT_DEG, _tile_aligned_tilt
+    from haptex_compile.shading_starts import ALIGNED_TILT_DEG, _tile_aligned_tilt
 
     assert _tile_aligned_tilt(271.0, (256, 256)) == ("y axis", 90.0)
     assert _tile_aligned_tilt(178.5, (256, 256)) == ("x axis", 0.0)
@@ -1153,7 +1153,7 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_star
     img = render_lambertian(woven, PX, light, 0.8, periodic=True)
     res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
     assert normalised_height_error(res.height, woven) <= 0.10
-    dom, w, kwargs = shading._solve_domain(img, shading.valid_pixels(img), shading._censored_pixels(img), True)
+    dom, w, kwargs = shading._solve_domain(img, shading.valid_pixels(img), _censored_pixels(img), True)
     one, a1 = sv.solve_variational(dom, w.astype(np.float32), light.vector, 0.8, **shading.DEFAULT_SOLVER, **kwargs)
     assert normalised_height_error(one.astype(float), woven) >= 0.5
     e = {k: sv.energy(dom, w.astype(np.float32), light.vector, a, z, dark=kwargs["dark"], bright=kwargs["bright"])
@@ -1162,7 +1162,7 @@ def test_light_along_a_tile_axis_or_diagonal_is_warned_and_solved_from_more_star
 
     # Random bumps along the y axis: the coarse levels set the waves across the light wrong
     # from every pyramid start (measured 0.758 from one, 0.311 from the start held from
-    # level 2); the full-resolution continuation (shading._bare_tile_starts) meets the
+    # level 2); the full-resolution continuation (shading_starts._bare_tile_starts) meets the
     # issue's 30 % (measured 0.134).
     h = surfaces256["bumps"]
     for tilt, warned in ((270.0, True), (273.0, False)):
@@ -1187,10 +1187,10 @@ def test_weave_starts_run_on_a_small_window_of_the_lattice_and_keep_its_shadows(
     truth = 40.0 * weave_image((208, 208), (16.0, 0.0), (0.0, 16.0), kind="plain")
     light = Light(60.0, 3.0)
     img = render_lambertian(truth, PX, light, 0.8, periodic=True)
-    assert (img <= shading.DARK).mean() > 0.01  # attached shadows
+    assert (img <= shading_image.DARK).mean() > 0.01  # attached shadows
     shapes = []
-    fine = shading._fine_starts
-    monkeypatch.setattr(shading, "_fine_starts", lambda im, *a: shapes.append(im.shape) or fine(im, *a))
+    fine = shading_starts._fine_starts
+    monkeypatch.setattr(shading_starts, "_fine_starts", lambda im, *a: shapes.append(im.shape) or fine(im, *a))
     res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True, weave_basis_px=np.diag([16.0, 16.0]))
     assert shapes == [(64, 64)]
     assert any("nearly along the weave direction" in w for w in res.warnings)
@@ -1209,7 +1209,7 @@ def test_weave_starts_run_on_a_small_window_of_the_lattice_and_keep_its_shadows(
         return starts
 
     shapes.clear()
-    monkeypatch.setattr(shading, "_fine_starts", noisy)
+    monkeypatch.setattr(shading_starts, "_fine_starts", noisy)
     again = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True, weave_basis_px=np.diag([16.0, 16.0]))
     assert shapes == [(64, 64)]
     assert np.all(np.isfinite(again.height))
@@ -1230,15 +1230,15 @@ def test_a_weaves_solves_are_compared_by_the_energy_of_their_cell_averages():
     basis = np.diag([16.0, 16.0])
     z_true = (truth / PX).astype(np.float32)
     noise = np.random.default_rng(1).standard_normal(img.shape).astype(np.float32)
-    noisy = z_true + noise - shading._cell_average(noise, basis).synthetic.astype(np.float32)
+    noisy = z_true + noise - shading_starts._cell_average(noise, basis).synthetic.astype(np.float32)
     flatter = (0.7 * z_true).astype(np.float32)
     starts = [(flatter, 0.8), (noisy, 0.8)]
-    assert shading._lowest_energy(img, weight, light, {}, starts)[0] is flatter
-    assert shading._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
+    assert shading_starts._lowest_energy(img, weight, light, {}, starts)[0] is flatter
+    assert shading_starts._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
     # A non-finite solve is never kept, and does not stop the others being averaged.
     starts.insert(0, (np.full_like(z_true, np.nan), 0.8))
-    assert shading._lowest_energy(img, weight, light, {}, starts)[0] is flatter
-    assert shading._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
+    assert shading_starts._lowest_energy(img, weight, light, {}, starts)[0] is flatter
+    assert shading_starts._lowest_energy(img, weight, light, {}, starts, basis)[0] is noisy
 
 
 def test_a_weave_window_is_not_treated_as_lit_along_its_own_diagonal(monkeypatch):
@@ -1254,8 +1254,8 @@ def test_a_weave_window_is_not_treated_as_lit_along_its_own_diagonal(monkeypatch
     img = render_lambertian(truth, PX, light, 0.8, periodic=True)
     calls = []
     for name in ("_held_starts", "_bare_tile_starts", "_fine_starts"):
-        starts = getattr(shading, name)
-        monkeypatch.setattr(shading, name, lambda *a, _n=name, _f=starts: calls.append(_n) or _f(*a))
+        starts = getattr(shading_starts, name)
+        monkeypatch.setattr(shading_starts, name, lambda *a, _n=name, _f=starts: calls.append(_n) or _f(*a))
     bare = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
     assert any("diagonal" in w for w in bare.warnings) and calls == ["_bare_tile_starts"]
     calls.clear()
@@ -1301,7 +1301,7 @@ def test_attached_shadows_face_away_from_the_light(monkeypatch, censored):
     # The one-sided shadow term: where the image is an attached shadow, the recovered
     # surface must not face the light (albedo R <= 0.01 within rounding). Without the term
     # the shadow is only filled smoothly and part of it faces the light (measured 2.6 %).
-    monkeypatch.setattr(shading, "CENSORED", censored)
+    monkeypatch.setattr(shading_image, "CENSORED", censored)
     sphere = ts.sphere_cap((128, 128), PX)
     light = Light(60.0, 300.0)
     img = render_lambertian(sphere, PX, light, 0.8, periodic=True)
@@ -1318,7 +1318,7 @@ def test_attached_shadows_face_away_from_the_light(monkeypatch, censored):
 
 @pytest.mark.parametrize("censored", [True, False])
 def test_over_exposed_pixels_are_a_lower_bound(bumps128, monkeypatch, censored):
-    monkeypatch.setattr(shading, "CENSORED", censored)
+    monkeypatch.setattr(shading_image, "CENSORED", censored)
     light = Light(40.0, 100.0)
     img = np.clip(render_lambertian(bumps128, PX, light, 1.0, periodic=True) * 1.25, 0, 1)
     over = img >= 0.99
@@ -1470,7 +1470,7 @@ def test_light_search_keeps_the_fine_detail_of_fractal_images():
     h = ts.brownian_surface((256, 256), PX, hurst=0.7, seed=2)
     light = Light(15.0, 30.0)
     img = render_lambertian(h, PX, light, 0.8, periodic=True)
-    assert shading._reduction_loss(img, valid_pixels(img), shading.SEARCH_SIDE_PX) > 0.2
+    assert shading_light._reduction_loss(img, valid_pixels(img), shading_light.SEARCH_SIDE_PX) > 0.2
     est, _ = estimate_light(img)
     assert abs(est.slant_deg - 15.0) <= 3.0
     assert tilt_axis_difference_deg(est.tilt_deg, 30.0) <= 5.0
@@ -1478,7 +1478,7 @@ def test_light_search_keeps_the_fine_detail_of_fractal_images():
 
 def test_block_average_uses_whole_blocks():
     img = np.random.default_rng(0).random((256, 256))
-    small, w = shading._block_average(img, np.ones(img.shape, bool), 192)
+    small, w = shading_light._block_average(img, np.ones(img.shape, bool), 192)
     assert small.shape == (128, 128) and np.all(w == 1)
     np.testing.assert_allclose(small, img.reshape(128, 2, 128, 2).mean(axis=(1, 3)), rtol=1e-6)
 
@@ -1531,7 +1531,7 @@ def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
     for processes in (1, 2):
         calls = []  # the solves run in this process (a worker's calls are its own)
         monkeypatch.setattr(shading_variational, "solve_variational", lambda *a, **k: calls.append(1) or solve(*a, **k))
-        monkeypatch.setattr(shading, "SEARCH_PROCESSES", processes)
+        monkeypatch.setattr(shading_light, "SEARCH_PROCESSES", processes)
         found[processes] = estimate_light(img)
         here[processes] = len(calls)
     assert found[2] == found[1]
@@ -1557,7 +1557,7 @@ def test_the_extra_starts_give_the_same_heights_in_worker_processes(monkeypatch,
     for processes in (1, 2):
         calls = []
         monkeypatch.setattr(shading_variational, "solve_variational", lambda *a, **k: calls.append(1) or solve(*a, **k))
-        monkeypatch.setattr(shading, "SEARCH_PROCESSES", processes)
+        monkeypatch.setattr(shading_light, "SEARCH_PROCESSES", processes)
         heights[processes] = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height
         here[processes] = len(calls)
     assert np.array_equal(heights[2], heights[1])
@@ -1601,7 +1601,7 @@ def test_light_search_sweeps_the_tilt_where_the_statistics_mislead():
     truth = Light(15.0, 30.0)
     img = render_lambertian(h, PX, truth, 0.8, periodic=True)
     # Beyond the final stage's tilt scan:
-    assert tilt_axis_difference_deg(shading._tilt_axis(img, valid_pixels(img))[0], 30.0) > shading.TILT_SCAN_DEG
+    assert tilt_axis_difference_deg(shading_light._tilt_axis(img, valid_pixels(img))[0], 30.0) > shading_light.TILT_SCAN_DEG
     found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
     est = found.light
     assert not est.albedo_at_bound
@@ -1623,12 +1623,12 @@ def test_tilt_sweep_returns_only_a_deep_well():
         fn.at_bound, fn.prefetch = 1.0, lambda lights: None
         return fn
 
-    swept = shading._swept_tilt(misfit(coarse), 30.0, 10.0)
+    swept = shading_light._swept_tilt(misfit(coarse), 30.0, 10.0)
     assert swept is not None and tilt_axis_difference_deg(swept, 100.0) < 6.0
     # A shallow well (above SWEEP_GAIN of the statistical tilt's misfit) is not trusted.
-    assert shading._swept_tilt(misfit(lambda s, t: coarse(s, t, well=0.6)), 30.0, 10.0) is None
+    assert shading_light._swept_tilt(misfit(lambda s, t: coarse(s, t, well=0.6)), 30.0, 10.0) is None
     # Lights whose albedo sits at the bound are not compared (the plateau fits anything).
-    assert shading._swept_tilt(misfit(lambda s, t: coarse(s, t, bound=True)), 30.0, 10.0) is None
+    assert shading_light._swept_tilt(misfit(lambda s, t: coarse(s, t, bound=True)), 30.0, 10.0) is None
 
 
 def test_light_below_the_plateau_is_found_on_a_lattice_relief():
@@ -1802,8 +1802,8 @@ def test_a_plain_image_lit_along_a_weave_direction_is_warned_without_more_starts
     truth = 40.0 * weave_image((96, 96), (16.0, 0.0), (0.0, 16.0), kind="plain")
     basis = np.diag([16.0, 16.0])
     ran = []
-    monkeypatch.setattr(shading, "_start_from_cell", lambda *a: ran.append(1))
-    monkeypatch.setattr(shading, "_fine_starts", lambda *a: ran.append(1))
+    monkeypatch.setattr(shading_starts, "_start_from_cell", lambda *a: ran.append(1))
+    monkeypatch.setattr(shading_starts, "_fine_starts", lambda *a: ran.append(1))
     for light, warned in ((Light(30.0, 2.0), True), (Light(30.0, 22.5), False)):
         img = render_lambertian(truth, PX, light, 0.8)
         res = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False, weave_basis_px=basis)
