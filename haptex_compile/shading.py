@@ -486,11 +486,13 @@ def shape_from_shading(
     weave_basis_px : array_like, optional
         The lattice of the image's relief (columns t1, t2 in pixels, a reduced basis), when
         known (a weave photo's tile or image). Light nearly along one of its weave directions
-        (:func:`weave_visibility` below ``WEAVE_VISIBILITY_MIN``) is warned of and, on a
-        periodic tile, solved from more starts (see :func:`_start_from_cell`). Without it,
-        light along a tile's axes and diagonals is (see :func:`_bare_tile_starts`); with it,
-        only when the light is also near a weave direction (a weave's window is cut to repeat
-        the lattice, and its own axes mean nothing).
+        (:func:`weave_visibility` below ``shading_starts.WEAVE_VISIBILITY_MIN``) is warned of
+        and, on a periodic tile, solved from more starts (see
+        :func:`~haptex_compile.shading_starts._start_from_cell`). Without it, light along a
+        tile's axes and diagonals is (see
+        :func:`~haptex_compile.shading_starts._bare_tile_starts`); with it, only when the light
+        is also near a weave direction (a weave's window is cut to repeat the lattice, and its
+        own axes mean nothing).
 
     Returns
     -------

@@ -977,7 +977,7 @@ def solve_variational(
         symbol is 0). On a periodic domain they exist when the light runs along its axes or
         diagonals; the shading sees them only at second order, and a coarse level's
         averaged, darkened image sets them wrong. None = hold nothing. See
-        ``shading.ALIGNED_TILT_DEG``.
+        ``shading_starts.ALIGNED_TILT_DEG``.
     lowfreq_check_level, lowfreq_reject_ratio : int or None, float
         Test the `lowfreq_weight` prior on this pyramid level (the coarsest if the pyramid
         is shorter; None = no test): the levels down to it are solved again without the
