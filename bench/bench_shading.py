@@ -1014,6 +1014,17 @@ def run(quick: bool = False) -> str:
     for label in TIMED:
         lines.append(f"| {label} | " + " | ".join(f"{t[label]:.2f}" for t in times)
                      + f" | {times[0][label] / ts_mp:.2f} |")
+    lines += ["", f"The default solver on each surface at {tn} x {tn} px, light given, at the issue's"
+              f" lights: seconds per megapixel (best of {1 if quick else 2}) and normalised height"
+              " error, as a tile and as a plain image (`periodic=False`). Baseline (same run): the"
+              " tile without the cap on the large levels above the finest"
+              " (`DEFAULT_SOLVER['large_level_cap'] = None`: those levels took up to 20 CG"
+              " iterations a step, the quarter-resolution one up to 20 steps; the random bumps"
+              " above understate the time of smooth reliefs):", "",
+              "| surface | slant, tilt (°) | tile: s per megapixel | error | without the cap: s per"
+              " megapixel | error | plain image: s per megapixel | error |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |",
+              *_surface_timing_rows(tn, repeats=1 if quick else 2)]
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
               " pyramid, the pyramid holding the waves across the light from level 2, and the"
               " full-resolution continuation, the lowest energy kept: `shading_starts._bare_tile_starts`)"
@@ -1026,6 +1037,36 @@ def run(quick: bool = False) -> str:
               "| --- | --- | --- | --- | --- |",
               *_aligned_timing_rows((256, 512) if quick else (256, 512, 1024))]
     return "\n".join(lines)
+
+
+def _surface_timing_rows(n: int, repeats: int) -> list[str]:
+    """Seconds per megapixel (best of `repeats`) and height error of the default solver on
+    each surface of side `n` at the first four ``LIGHTS``, light given: as a tile, as a tile
+    without ``DEFAULT_SOLVER``'s large-level cap, and as a plain image; then the slowest of
+    each and the summed times' ratio."""
+    rows, slowest, totals = [], [0.0, 0.0, 0.0], [0.0, 0.0]
+    for name, truth in _surfaces(n).items():
+        for slant, tilt in LIGHTS[:4]:
+            light = Light(slant, tilt)
+            cells = []
+            for k, (periodic, patch) in enumerate([(True, {}), (True, {"large_level_cap": None}), (False, {})]):
+                img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
+                best = np.inf
+                with mock.patch.dict(DEFAULT_SOLVER, patch):
+                    for _ in range(repeats):
+                        t0 = time.perf_counter()
+                        res = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=periodic)
+                        best = min(best, time.perf_counter() - t0)
+                per_mp = best / (n * n / 1e6)
+                slowest[k] = max(slowest[k], per_mp)
+                if k < 2:
+                    totals[k] += best
+                cells.append(f"{per_mp:.2f} | {normalised_height_error(res.height, truth):.3f}")
+            rows.append(f"| {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    rows += ["", f"Slowest: tile {slowest[0]:.2f} s per megapixel (without the cap {slowest[1]:.2f}),"
+             f" plain image {slowest[2]:.2f}; the tiles' summed time with the cap over without it:"
+             f" {totals[0] / totals[1]:.2f}."]
+    return rows
 
 
 def _aligned_timing_rows(sides) -> list[str]:

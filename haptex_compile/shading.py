@@ -228,9 +228,22 @@ LOW_SLANT_MAX_DEG = 20.0
 LOW_SLANT_MID_CG = 12
 # Each level starts from an albedo within its bounds (see solve_variational's
 # bound_start_albedo: the finest level's lower bound lies above the albedo it inherits).
+# Large images: the levels other than the finest with 256 x 256 px or more (a 1 Mpx image's
+# half- and quarter-resolution levels, a 512 px image's half) take at most 8 Gauss-Newton steps
+# of 12 CG iterations (solve_variational's large_level_cap; the half-resolution level took 20,
+# the quarter one up to 20 steps). They only give the next level its start, and on smooth
+# reliefs they crept on to their step limits: 1 Mpx sphere caps and plain weaves took 0.95-1.15
+# s/Mpx, random bumps, whose timing the bench had reported, 0.6-0.8. Measured in one run
+# (best of 2; the bench's four surfaces as 1 Mpx tiles at its four lights, light given):
+# summed time 14.9 -> 12.9 s, slowest 1.10 -> 0.92 s/Mpx, summed height error 0.987 -> 0.995
+# (the sphere cap at 30° and 60° 0.007 / 0.023 -> 0.013 / 0.028, the others within 0.003);
+# 512 px tiles 3.96 -> 3.72 s, error 0.605 -> 0.610; 1 Mpx plain images of random bumps
+# (seeds 5, 2) at 45° 1.04-1.09 -> 0.91-0.93 s/Mpx and at 60° 1.17-1.30 -> 1.10-1.21, errors
+# within 0.005, at 15° unchanged (12 iterations already). Tiles of 256 px have no such level.
 DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=3e-4, albedo_projection=True,
                       projection_levels=(1,), projection_max_ratio=0.1, bound_noise_sigmas=3.09,
-                      censored_data=False, subspace_steps=2, bound_start_albedo=True)
+                      censored_data=False, subspace_steps=2, bound_start_albedo=True,
+                      large_level_cap=(256 * 256, 8, 12))
 # Plain images: a level stops once a full step gains less than 0.1 %. Their half-resolution
 # level gains 0.05-0.1 % a step for all its 8 steps (a tile's converges in 4), for no
 # accuracy: bench_shading's plain-image table (light given, plain renderings and crops)

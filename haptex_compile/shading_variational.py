@@ -807,6 +807,7 @@ def solve_variational(
     subspace_steps: int = 0,
     bound_start_albedo: bool = False,
     hold_from_level: int | None = None,
+    large_level_cap: tuple[int, int, int] | None = None,
     lowfreq_check_level: int | None = None,
     lowfreq_reject_ratio: float = np.inf,
     lowfreq_reject_albedo: float = np.inf,
@@ -978,6 +979,11 @@ def solve_variational(
         diagonals; the shading sees them only at second order, and a coarse level's
         averaged, darkened image sets them wrong. None = hold nothing. See
         ``shading_starts.ALIGNED_TILT_DEG``.
+    large_level_cap : (int, int, int), optional
+        ``(pixels, steps, cg)``: the levels other than the finest with at least `pixels`
+        pixels take at most `steps` Gauss-Newton steps of at most `cg` CG iterations each
+        (large images: those levels only give the next one its start; see
+        ``shading.DEFAULT_SOLVER``). None = no cap.
     lowfreq_check_level, lowfreq_reject_ratio : int or None, float
         Test the `lowfreq_weight` prior on this pyramid level (the coarsest if the pyramid
         is shorter; None = no test): the levels down to it are solved again without the
@@ -1048,6 +1054,8 @@ def solve_variational(
             albedo = prob.bounded_albedo(albedo)
         steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
         cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
+        if large_level_cap is not None and level > 0 and img.size >= large_level_cap[0]:
+            steps, cg = min(steps, large_level_cap[1]), min(cg, large_level_cap[2])
         z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
                                gn_rtol, subspace_steps)
         return z, albedo, prob
