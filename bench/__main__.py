@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="each module's quick mode (a few minutes in all)")
     parser.add_argument("--only", help="comma-separated section names (e.g. lattice,fractal)")
-    parser.add_argument("--timeout", type=float, help="seconds per module (default 240 quick, 900 full)")
+    parser.add_argument("--timeout", type=float, help="seconds per module (default 240 quick, 1200 full)")
     parser.add_argument("--out", type=Path, default=BENCH_DIR / "REPORT.md", help="report file (default bench/REPORT.md)")
     parser.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help="folder of the bench_*.py modules (default: bench/)")
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
