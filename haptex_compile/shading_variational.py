@@ -567,7 +567,7 @@ class _Problem:
         rz = float(np.vdot(rr, zz))
         b_norm = float(np.sqrt(np.vdot(b, b))) or 1.0
         row_sq = np.empty(z.shape[0])  # sums of rr² by row (see cg_update_rows)
-        for _ in range(max_cg):
+        for it in range(max_cg):
             ad = matvec(d)
             dad = float(np.vdot(d, ad))
             if dad <= 0 or not np.isfinite(dad):
@@ -576,8 +576,8 @@ class _Problem:
 
             a32 = _F(alpha)
             _run_rows(lambda rows: cg_update_rows(x, rr, d, ad, a32, row_sq, rows.start, rows.stop), blocks)
-            if float(np.sqrt(row_sq.sum())) < tol * b_norm:
-                break
+            if float(np.sqrt(row_sq.sum())) < tol * b_norm or it == max_cg - 1:
+                break  # converged, or the last iteration: no next direction (and its transforms)
             zz = self.apply_pre(inv_sym, rr)
             rz_new = float(np.vdot(rr, zz))
             if not rz_new > 0:  # nothing left that the preconditioner lets through
