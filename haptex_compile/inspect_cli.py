@@ -82,6 +82,8 @@ def summary(path: str) -> str:
     rough = report.get("roughness")
     if isinstance(rough, dict) and "warning" in rough:
         lines.append(f"  warning    {rough['warning']}")
+    if "relief_warning" in report:  # a height map's implausible relief (likely a unit error)
+        lines.append(f"  warning    {report['relief_warning']}")
     if "out_of_gamut_fraction" in report:
         lines.append(f"  gamut      {report['out_of_gamut_fraction']:.1%} of table values out of gamut (max measure {report['out_of_gamut_max']:.3g})")
     for key in ("pixel_size", "relief", "surface"):

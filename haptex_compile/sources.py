@@ -24,6 +24,10 @@ LOG = logging.getLogger("haptex.sources")
 DEFAULT_PIXEL_SIZE_UM = 20.0  # used, with a warning, when neither the user nor metadata give one
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 HEIGHTMAP_SUFFIXES = (".npy", ".exr")
+# A height map's RMS (after levelling) outside this range, in µm, is warned of as a likely unit
+# error: fabrics' roughness is 1-20 µm (Kawabata SMD) and their relief up to a few hundred;
+# heights in nm read as µm land above it, heights in mm below (and under 0.01 µm nothing is felt).
+PLAUSIBLE_RMS_UM = (0.01, 1000.0)
 
 
 @dataclass
@@ -159,8 +163,14 @@ def load_source(spec: str, options: SourceOptions) -> SourceResult:
         h = read_height_npy(spec) if spec.lower().endswith(".npy") else read_height_exr(spec)
         px, note = _pixel_size(options, spec)
         h = remove_plane(np.asarray(h, dtype=float))
-        return SourceResult(Surface(h, px, False), "heightmap", Path(spec).name,
-                            {"pixel_size": f"{px:g} um {note}", "plane_removed": True})
+        report = {"pixel_size": f"{px:g} um {note}", "plane_removed": True}
+        rms = float(np.sqrt(np.mean(h * h)))
+        low, high = PLAUSIBLE_RMS_UM
+        if not low <= rms <= high:
+            report["relief_warning"] = (f"RMS height {rms:.3g} um after levelling, outside {low:g}-{high:g} um:"
+                                        " the file's heights must be in micrometres")
+            LOG.warning("%s: %s", spec, report["relief_warning"])
+        return SourceResult(Surface(h, px, False), "heightmap", Path(spec).name, report)
     if kind == "image":
         from haptex_compile.photo import photo_source
 

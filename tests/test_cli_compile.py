@@ -157,6 +157,19 @@ def test_make_dependency_file_and_out_dir_with_jobs(tmp_path, scene_file):
     assert f"{out_dir / 'h.tact.h5'}: {npy} {scene_file}" in rules
 
 
+def test_a_height_map_in_nanometres_is_compiled_with_a_warning(tmp_path, scene_file):
+    # Heights of a few µm written in nm read as thousands of µm: compiled, warned of on
+    # stderr (naming the file) and in the asset, which haptex-inspect shows.
+    npy = tmp_path / "nm.npy"
+    np.save(npy, 3000.0 * np.random.default_rng(1).normal(size=(48, 48)))
+    out = tmp_path / "nm.tact.h5"
+    r = run("haptex-compile", str(npy), "-o", str(out), "--scene", str(scene_file), "--pixel-size", "20um")
+    assert r.returncode == 0, r.stderr
+    assert any("nm.npy" in line and "micrometres" in line for line in r.stderr.splitlines())
+    r = run("haptex-inspect", str(out))
+    assert r.returncode == 0 and "warning    RMS height" in r.stdout
+
+
 def test_exr_export_has_named_channels(tmp_path, scene_file):
     from haptex_compile.io_exr import read_exr_channels
 

@@ -87,6 +87,25 @@ def test_input_kinds_and_stems():
         input_kind("notes.txt")
 
 
+@pytest.mark.parametrize("rms_um, warned", [(5.0, False), (5000.0, True), (0.005, True)])
+def test_a_height_map_of_implausible_relief_is_warned_of(tmp_path, monkeypatch, caplog, rms_um, warned):
+    # A fabric's roughness is micrometres: heights written in nm read as thousands of µm,
+    # heights in mm as thousandths; both are compiled, with a warning naming the file.
+    import logging
+
+    from haptex_compile.sources import SourceOptions, load_source
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    h = np.random.default_rng(0).standard_normal((64, 64))
+    path = tmp_path / "relief.npy"
+    np.save(path, h * (rms_um / h.std()))
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        result = load_source(str(path), SourceOptions(pixel_size_um=20.0))
+    assert ("relief_warning" in result.report) is warned
+    assert any("relief.npy" in r.getMessage() and "micrometres" in r.getMessage() for r in caplog.records) is warned
+    assert float(np.sqrt(np.mean(result.surface.height_um ** 2))) == pytest.approx(rms_um, rel=0.05)
+
+
 def test_plane_removal_leaves_texture():
     y, x = np.mgrid[0:40, 0:50]
     texture = np.sin(x / 3.0) * np.cos(y / 4.0)
