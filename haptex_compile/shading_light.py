@@ -140,6 +140,14 @@ def _normalised(wi: np.ndarray, ww: np.ndarray):
     return out, (ww > 0.5).astype(np.float32)
 
 
+def _quarter_blocks(shape: tuple[int, int]) -> list[tuple[slice, slice]]:
+    """The 4 x 4 blocks of an image of `shape` (rows, cols), row by row: the spread of an
+    estimate over them gives its uncertainty."""
+    rows, cols = shape
+    return [(slice(i * rows // 4, (i + 1) * rows // 4), slice(j * cols // 4, (j + 1) * cols // 4))
+            for i in range(4) for j in range(4)]
+
+
 def _tilt_axis(img: np.ndarray, valid: np.ndarray) -> tuple[float, float, float]:
     """Axis of the light's tilt from the image-gradient second moments.
 
@@ -164,16 +172,7 @@ def _tilt_axis(img: np.ndarray, valid: np.ndarray) -> tuple[float, float, float]
 
     ang, aniso = axis((slice(None), slice(None)))
     # Spread over 4 x 4 blocks: the axial (doubled-angle) circular spread, / sqrt(blocks).
-    rows, cols = img.shape
-    doubled = []
-    for i in range(4):
-        for j in range(4):
-            sl = (
-                slice(i * rows // 4, (i + 1) * rows // 4),
-                slice(j * cols // 4, (j + 1) * cols // 4),
-            )
-            a, _ = axis(sl)
-            doubled.append(2 * a)
+    doubled = [2 * axis(sl)[0] for sl in _quarter_blocks(img.shape)]
     c, s = np.mean(np.cos(doubled)), np.mean(np.sin(doubled))
     r = min(max(np.hypot(c, s), 1e-9), 1.0)
     sd_block = 0.5 * np.rad2deg(np.sqrt(-2 * np.log(r)))
@@ -266,17 +265,11 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     axis, _aniso, tilt_sd = _tilt_axis(img, valid)
     tilt = axis if axis == 0 else axis + 180.0  # sin(tilt) <= 0: light from the image top
     slant = _moment_slant(img[valid])
-    rows, cols = img.shape
     blocks = []
-    for i in range(4):
-        for j in range(4):
-            sl = (
-                slice(i * rows // 4, (i + 1) * rows // 4),
-                slice(j * cols // 4, (j + 1) * cols // 4),
-            )
-            vb = img[sl][valid[sl]]
-            if vb.size >= 16 and float(np.std(vb)) > 1e-4:
-                blocks.append(_moment_slant(vb))
+    for sl in _quarter_blocks(img.shape):
+        vb = img[sl][valid[sl]]
+        if vb.size >= 16 and float(np.std(vb)) > 1e-4:
+            blocks.append(_moment_slant(vb))
     slant_sd = float(np.std(blocks) / np.sqrt(len(blocks))) if len(blocks) > 1 else 90.0
     slant_sd = float(min(max(slant_sd, 5.0), 90.0))
     albedo, at_bound = None, False

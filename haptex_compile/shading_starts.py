@@ -152,7 +152,7 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     cores, bench tiles of 256 px lit along their axes and diagonals (three surfaces, three
     lights, and a lattice along a weave direction) 12.5 -> 8.7 s in all, random bumps of
     512 px and 1024 px lit along x 5.7 -> 4.1 s and 17.1 -> 15.8 s. A tile with no lattice
-    given now runs the continuation only (:func:`_bare_tile_starts`).
+    given runs the continuation and one held pyramid start instead (:func:`_bare_tile_starts`).
     """
     def flat_and_negated():
         zf, af = _full_resolution_solve(img, weight, light, albedo0, domain_kwargs)
@@ -255,7 +255,6 @@ def _start_from_cell(img, weight, light: Light, albedo0: float, domain_kwargs: d
     pyramid alone). Polishing every start (not only the best) or with 6 steps: 3.87 either
     way, slower.
     """
-    from haptex_compile.shading_variational import solve_variational
     from haptex_compile.tiles import paint_tile, small_periodic_window
 
     basis = np.asarray(basis_px, dtype=float)
@@ -270,8 +269,7 @@ def _start_from_cell(img, weight, light: Light, albedo0: float, domain_kwargs: d
     z, a = _lowest_energy(small_img, small_weight, light, small_kwargs,
                           _fine_starts(small_img, small_weight, light, albedo0, small_kwargs))
     z0 = paint_tile(_cell_average(z, b_small).tile, basis, img.shape)
-    return [solve_variational(img, weight, light.vector, a, z0=z0, max_levels=1, fine_gn=FINE_POLISH_GN,
-                              fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **domain_kwargs)]
+    return [_full_resolution_solve(img, weight, light, a, domain_kwargs, z0, FINE_POLISH_GN)]
 
 
 def _unseen_waves(z: np.ndarray, light: Light) -> np.ndarray | None:
