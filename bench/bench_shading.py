@@ -280,6 +280,14 @@ def _plain_crop(n: int) -> tuple[slice, slice]:
     return slice(13, 13 + n - n // 8), slice(19, 19 + n - n // 8)
 
 
+def _signed_tactile_cell(got: dict, want: dict) -> str:
+    """Signed relative errors of mean a40 / a320 and, in brackets, of the channel intensities
+    I_p / I_np behind them (:func:`mean_tactile` dicts): a320 is small beside a40 on smooth
+    reliefs, where its relative error says little of what is felt."""
+    e = {k: got[k] / want[k] - 1 for k in ("a40", "a320", "i_p", "i_np")}
+    return f"{e['a40']:+.0%} / {e['a320']:+.0%} ({e['i_p']:+.1%} / {e['i_np']:+.1%})"
+
+
 def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
     """The four surfaces rendered without wrap-around (one-sided differences at the edges)
     and solved as plain images, light given: Tsai-Shah's error, the default's error and
@@ -317,9 +325,7 @@ def _nonperiodic_rows(n: int, quick: bool) -> list[str]:
                 f"| {name} | {slant:g}, {tilt:g} | {e_ts:.3f} | {normalised_height_error(base.height, truth):.3f}"
                 f" | {normalised_height_error(r.height, truth):.3f}"
                 f" | {normalised_height_error(remove_plane(r.height), remove_plane(truth)):.3f}"
-                f" | {got['a40'] / want['a40'] - 1:+.0%} / {got['a320'] / want['a320'] - 1:+.0%}"
-                f" | {got_levelled['a40'] / want_levelled['a40'] - 1:+.0%} /"
-                f" {got_levelled['a320'] / want_levelled['a320'] - 1:+.0%} | {kept}"
+                f" | {_signed_tactile_cell(got, want)} | {_signed_tactile_cell(got_levelled, want_levelled)} | {kept}"
                 f" | {normalised_height_error(base_crop.height, truth[crop]):.3f}"
                 f" | {normalised_height_error(on_crop.height, truth[crop]):.3f}"
                 f" ({normalised_height_error(remove_plane(on_crop.height), remove_plane(truth[crop])):.3f})"
@@ -895,7 +901,9 @@ def run(quick: bool = False) -> str:
               " is tightened on the long waves across the light that the image's waves along it"
               " show to have little power (`shading_prior`; baseline, same run: the default"
               " without that, "
-              "`SPECTRAL_PRIOR_WEIGHT = 0`). Tactile error of plain surfaces."
+              "`SPECTRAL_PRIOR_WEIGHT = 0`). Tactile error of plain surfaces: signed relative"
+              " errors of the tables' mean a40 / a320, the channel intensities I_p / I_np in brackets"
+              " (a sphere cap's a320 is about 1e-3 of its a40: its relative error moves I_p little)."
               " The surfaces are periodic tiles, so the last columns also crop"
               f" {n - n // 8} px of the tile's periodic rendering (offset 13, 19 px): a surface that is"
               " not periodic on the image, as a real one; the last with the light estimated (the"
@@ -905,7 +913,7 @@ def run(quick: bool = False) -> str:
               " a plain image's shading, and the photo pipeline averages a plain solve over the"
               " lattice, which removes it; the Brownian tile has half its variance in its plane:", "",
               "| surface | slant, tilt (°) | Tsai-Shah error | baseline error | default error | levelled error |"
-              " a40 / a320 error | levelled: a40 / a320 error | flat prior | on the crop: baseline | default (levelled) |"
+              " a40 / a320 error (I_p / I_np) | levelled: a40 / a320 error (I_p / I_np) | flat prior | on the crop: baseline | default (levelled) |"
               " light estimated |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
               *_nonperiodic_rows(n, quick)]
