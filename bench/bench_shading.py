@@ -339,11 +339,12 @@ CROPS_PER_SURFACE = 30
 
 
 # The baselines of the random crops: the default without the plane term of the flat-on-average
-# prior, and with the prior as it was before its albedo test (weight 1, dropped above an
-# energy ratio of 4 alone).
+# prior, with the prior as it was before its albedo test (weight 1, dropped above an energy
+# ratio of 4 alone), and with the narrow margin of level ground's images on every image.
 CROP_BASELINES = {"no plane": {"LOWFREQ_PLANE_WEIGHT": 0.0},
                   "previous prior": {"LOWFREQ_WEIGHT": 1.0, "LOWFREQ_REJECT_RATIO": 4.0,
-                                     "LOWFREQ_REJECT_ALBEDO": np.inf}}
+                                     "LOWFREQ_REJECT_ALBEDO": np.inf},
+                  "narrow margin": {"TEXTURE_MARGIN": shading.PLAIN_MARGIN}}
 
 
 def random_crops(count: int):
@@ -391,7 +392,8 @@ MARGINS = (0.05, 0.08, 0.15, 0.2, 0.3)
 
 def _margin_rows(n: int, quick: bool) -> list[str]:
     """The plain weave's plain image and its crop (as in :func:`_nonperiodic_rows`) solved on
-    periodic domains of other sizes (``shading.PLAIN_MARGIN`` patched; the default's first):
+    periodic domains of other sizes (``shading.TEXTURE_MARGIN`` patched: the weave is a
+    texture; the default's first):
     the domain's sides and the normalised height errors, light given."""
     truth = ts.woven_like((n, n), PIXEL_UM)
     crop = _plain_crop(n)
@@ -399,8 +401,8 @@ def _margin_rows(n: int, quick: bool) -> list[str]:
     images = [(render_lambertian(truth, PIXEL_UM, Light(*sl), ALBEDO, periodic=False),
                render_lambertian(truth, PIXEL_UM, Light(*sl), ALBEDO, periodic=True)[crop]) for sl in lights]
     out = []
-    for margin in sorted(MARGINS, key=lambda m: m != shading.PLAIN_MARGIN):
-        with mock.patch.object(shading, "PLAIN_MARGIN", margin):
+    for margin in sorted(MARGINS, key=lambda m: m != shading.TEXTURE_MARGIN):
+        with mock.patch.object(shading, "TEXTURE_MARGIN", margin):
             sides = [shading._solve_domain(im, np.ones(im.shape, bool), _censored_pixels(im), False)[0].shape[0]
                      for im in images[0]]
             cells = []
@@ -925,15 +927,19 @@ def run(quick: bool = False) -> str:
               " (`shading.LOWFREQ_PLANE_WEIGHT = 0`; a tilt along the light is traded against the"
               " albedo), and with the prior as it was before its albedo test (`LOWFREQ_WEIGHT = 1`,"
               " dropped above an energy ratio of 4 alone, `LOWFREQ_REJECT_RATIO = 4`,"
-              " `LOWFREQ_REJECT_ALBEDO = inf`):", "",
+              " `LOWFREQ_REJECT_ALBEDO = inf`), and with the narrow margin of images whose edges"
+              " are level ground on every image (`shading.TEXTURE_MARGIN = PLAIN_MARGIN`: the"
+              " smooth join across the margin pulls a texture's opposite edges towards each other;"
+              " `shading.level_edge_fraction` tells the two kinds apart):", "",
               "| surface | crops | no plane: mean | worst | above 0.4 | previous prior: mean | worst |"
-              " above 0.4 | default: mean | worst | above 0.4 |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+              " above 0.4 | narrow margin: mean | worst | above 0.4 | default: mean | worst | above 0.4 |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
               *_random_crop_rows(quick)]
     margin_lights = _plain_lights(quick)
     lines += ["", f"The plain weave's plain image ({n} px) and its crop ({n - n // 8} px) on periodic"
-              " domains of other sizes (the margin around the image, `shading.PLAIN_MARGIN`, as a"
-              " fraction of its side; the default's first; the sides halve to fast FFT sizes):"
+              " domains of other sizes (the margin around the image, `shading.TEXTURE_MARGIN` for"
+              " a texture, as a fraction of its side; the default's first; the sides halve to fast"
+              " FFT sizes; `PLAIN_MARGIN` is the margin of images whose edges are level ground):"
               " normalised height error, light given, image / crop. The image is periodic, and"
               " some domains suit it: the crop's figures are a real photo's.", "",
               "| margin | domain side: image / crop (px) | "

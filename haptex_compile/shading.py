@@ -153,16 +153,40 @@ COARSE_PLANE_LEVEL = 2
 PLAIN_FINE_PRIOR_PX = 1024
 # A plain image's periodic domain halves to sizes with fast FFTs down to about this size.
 FAST_HALF_PX = 128
-# The margin around a plain image, as a fraction of its longer side (at least 8 px). Its
-# smooth join holds level ground at the edges; textures that fill the image do better with
-# wider margins. Measured in one run against 0.2 (light given): bench_shading's random crops,
-# mean errors sphere domes 0.318 / 0.238, plain weave 0.235 / 0.223, random bumps 0.228 /
-# 0.227; its plain table's crops (224 px) of the weave 0.29 / 0.15 at 15°, Brownian surfaces
-# 0.72-0.86 / 0.57-0.83; 800 px crops of the weave (6) 0.36 / 0.25; but the sphere cap on
-# level ground at 60° 0.086 / 0.245 (at 45°: 0.028 / 0.092), its crop 0.045 / 0.148. Picking
-# the margin by the data misfit of both solves (twice the time) summed 28.97 over those 122
-# cases, against 32.29 (0.08) and 28.91 (0.2). With 0.2 a 1 Mpx domain is 1280 px (1152).
+# The margin around a plain image, as a fraction of its longer side (at least 8 px): the
+# margin's thin plate joins opposite edges smoothly. On an image whose edges are level ground
+# (an object on a flat background: see LEVEL_EDGE_FRACTION) the join holds that ground level,
+# and the margin is PLAIN_MARGIN; on others (a texture that fills the image) it bends the
+# edges towards each other, and a wider margin, TEXTURE_MARGIN, frees them. Measured in one
+# run, light given, with PLAIN_MARGIN everywhere against that choice with TEXTURE_MARGIN 0.15
+# / 0.2: bench_shading's random crops, mean errors sphere domes 0.318 -> 0.258 / 0.238 (above
+# 0.4: 8 -> 5 / 2), plain weave 0.235 -> 0.218 / 0.223 (5 -> 2 / 2), random bumps 0.228 ->
+# 0.226 / 0.227; its plain table (256 px renderings and 224 px crops, 4 lights): the weave's
+# crops 0.170 -> 0.099 / 0.099 on average (0.289 -> 0.146 at 15°), its renderings 0.033 ->
+# 0.067 / 0.043 (their edges match, and the narrow margin suits them), random bumps 0.207 /
+# 0.181 -> 0.197 / 0.166 (renderings / crops) at 0.15, Brownian surfaces 0.747 / 0.816 ->
+# 0.694 / 0.742, the sphere cap on level ground unchanged (with 0.2 everywhere: 0.086 -> 0.245
+# at 60°); 800 px crops of 1024 px tiles (6 each): the weave 0.360 -> 0.251, random bumps
+# 0.179 -> 0.165, Brownian 0.821 -> 0.818, domes of a sphere cap (edges 41-58 % level
+# ground) unchanged; summed error 40.80 -> 36.88 / 36.23, time +12 % / +17 % over all of
+# them. 1 Mpx renderings (the four surfaces at four lights, best of 2): summed error
+# 4.36 -> 4.20 (the weave at 15° 0.156 -> 0.080), time 18.2 -> 19.7 s (the domain 1152 ->
+# 1200 px; with 0.2, 1280 px). Picking the margin by the data misfit of both solves (twice the
+# time) did no better than 0.2 everywhere on the 122 cases at 256 px and below (28.97 against
+# 28.91 summed; 0.08: 32.29).
 PLAIN_MARGIN = 0.08
+TEXTURE_MARGIN = 0.15
+# An image's edges are level ground when at least LEVEL_EDGE_FRACTION of the valid pixels in
+# a band of LEVEL_EDGE_BAND_PX along its edges, smoothed by a Gaussian of LEVEL_EDGE_BLUR_PX
+# (noise of sigma 0.03: 0.24 -> 0.88 of a flat ground's band within the tolerance), lie within
+# LEVEL_EDGE_TOL of their median. Measured on bench_shading's images (above): sphere caps on
+# level ground 0.64-1.0 (with noise of sigma 0.01-0.03: 0.88-1.0), 800 px domes 0.41-0.58,
+# textures (random crops, plain weave, random bumps, Brownian surfaces, with that noise too)
+# 0.01-0.36.
+LEVEL_EDGE_FRACTION = 0.4
+LEVEL_EDGE_BAND_PX = 2
+LEVEL_EDGE_BLUR_PX = 2.0
+LEVEL_EDGE_TOL = 0.01
 # Every surface has an extremum, where its slope is 0 and its shading albedo x cos(slant):
 # the albedo is at most the brightest pixels' level (the 99.9th percentile of the valid
 # ones) over cos(slant), times ALBEDO_SLACK for that percentile. The solve's albedo is
@@ -374,15 +398,38 @@ def _embed(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
+def level_edge_fraction(image: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """The share of an image's edges that looks like level ground: of the valid pixels in a
+    band ``LEVEL_EDGE_BAND_PX`` wide along its four edges, after a Gaussian blur of
+    ``LEVEL_EDGE_BLUR_PX`` (invalid pixels filled with the mean), those within
+    ``LEVEL_EDGE_TOL`` (intensity, image in [0, 1]) of the band's median. 0 when the band
+    holds no valid pixel."""
+    img = np.asarray(image, dtype=float)
+    ok = np.isfinite(img) if valid is None else np.asarray(valid, bool) & np.isfinite(img)
+    if not ok.any():
+        return 0.0
+    smooth = ndimage.gaussian_filter(np.where(ok, img, float(np.mean(img[ok]))), LEVEL_EDGE_BLUR_PX, mode="nearest")
+    band = np.zeros(img.shape, bool)
+    b = LEVEL_EDGE_BAND_PX
+    band[:b] = band[-b:] = True
+    band[:, :b] = band[:, -b:] = True
+    vals = smooth[band & ok]
+    if vals.size == 0:
+        return 0.0
+    return float(np.mean(np.abs(vals - np.median(vals)) <= LEVEL_EDGE_TOL))
+
+
 def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
                   light: Light | None = None, albedo: float = 0.0):
     """The periodic domain the variational solver works on.
 
     A tile is its own domain. A plain image is embedded in a larger periodic domain whose
-    margin carries no data (its edges are free), with the flat-on-average prior, tightened
-    where the image's waves along `light` (with `albedo`) show no long-wave power
-    (:mod:`haptex_compile.shading_prior`). `censored` is :func:`_censored_pixels` of the image.
-    With `light` and no saturated pixel, the albedo is bounded above (``ALBEDO_SLACK``).
+    margin carries no data (its edges are free; ``PLAIN_MARGIN`` of its longer side where its
+    edges are level ground by :func:`level_edge_fraction`, else ``TEXTURE_MARGIN``), with the
+    flat-on-average prior, tightened where the image's waves along `light` (with `albedo`) show
+    no long-wave power (:mod:`haptex_compile.shading_prior`). `censored` is
+    :func:`_censored_pixels` of the image. With `light` and no saturated pixel, the albedo is
+    bounded above (``ALBEDO_SLACK``).
 
     Returns
     -------
@@ -398,7 +445,8 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
     if periodic:
         dom_img, dom_w = img, valid
     else:
-        pad = max(8, int(PLAIN_MARGIN * max(rows, cols)))
+        level = level_edge_fraction(img, valid) >= LEVEL_EDGE_FRACTION
+        pad = max(8, int((PLAIN_MARGIN if level else TEXTURE_MARGIN) * max(rows, cols)))
         # Sizes that halve to fast FFT sizes (factors 2, 3 and 5 only) down to about
         # FAST_HALF_PX: 1024 px would get 1125, which halves to 562 = 2 x 281 (a prime) and
         # that level's steps took 3 x as long. Smaller levels cost little either way, and
