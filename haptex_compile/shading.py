@@ -547,7 +547,8 @@ def shape_from_shading(
     periodic : bool
         The image is a tile: the height wraps seamlessly (all operators are periodic).
         Otherwise the image is embedded in a larger periodic domain whose margin carries no
-        data, so its edges are free, and a weak prior that the fabric lies flat on average
+        data, so its edges are free (the margin is wider where the edges are not level ground:
+        see :func:`level_edge_fraction`), and a weak prior that the fabric lies flat on average
         (no slope across the light at wavelengths longer than the image) removes the ramps
         that shading cannot see; it is tightened on the longest waves across the light where
         the image's waves along the light show little power (a weave: see
@@ -556,7 +557,7 @@ def shape_from_shading(
         random bumps at 45°: 0.07 periodic, 0.24 as a plain image). On a plain image those
         offsets are left to the thin plate and the prior, and the energy's own minimum is off:
         random bumps at 60°, 10 seeds, the minimum nearest the true surface has normalised
-        errors 0.25-0.32 (the default 0.23-0.36; ``bench/bench_shading.py``).
+        errors 0.24-0.33 (the default 0.22-0.31; ``bench/bench_shading.py``).
     mask : ndarray of bool, optional
         Pixels to use; saturated (>= 0.99), black (<= 0.01) and non-finite pixels are always
         excluded and filled by the smoothness term.
