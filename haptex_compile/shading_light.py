@@ -34,6 +34,16 @@ SEARCH_SIDE_PX = 96
 SEARCH_PROCESSES: int | None = None
 # The final stage's image side at most (the whole image when it is smaller; see _refine_light).
 FINAL_SIDE_PX = 256
+# A larger image has the final stage run again on the image itself (block-averaged to at most
+# this side), and keeps the light that fits it better. Averaging biases the final image (it
+# darkens rough shading, and blurs a weave's crossings), and the true light's well is narrow
+# at full resolution: the misfits of 512 and 768 px tiles at their true lights were 1.5-8 x
+# below those at the 256 px stage's estimates (Brownian, random bumps, plain weave; lit at
+# 15° and 45°). The full-resolution stage alone can settle in a side well (a 768 px plain weave
+# lit at 30°: 25.5°, 296° where the 256 px stage found 30.5°, 301°, 4.5 x the misfit), hence
+# both (FULL_SIDE_PX <= FINAL_SIDE_PX: no such stage). Measured: see bench_shading's table of
+# larger tiles.
+FULL_SIDE_PX = 1024
 # The coarse image is rescanned at the final side when it loses more than this fraction of the
 # image's variance.
 MAX_REDUCTION_LOSS = 0.05
@@ -239,7 +249,8 @@ def estimate_light(image, *, mask=None, refine: bool = True, periodic: bool = Tr
         Estimate the light jointly with the shape (about 40 solves on a 96-pixel image and
         40 on one of at most 256 pixels; on 2 cores 1.3-2.1 s for the 256 px bench tiles,
         with each step's candidate lights solved side by side in ``SEARCH_PROCESSES``
-        worker processes, 2.4-3.6 s in one).
+        worker processes, 2.4-3.6 s in one). A larger image has about 40 more solves on
+        itself (up to ``FULL_SIDE_PX``): see ``bench/bench_shading.py`` for their seconds.
     periodic : bool
         Whether the image wraps (a tile). The search solves each light on a periodic domain
         either way; on a plain image (False) its misfit leaves out a band of
@@ -476,7 +487,10 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     else block-averaged to at most that): the 5° slant grid again if the reduced image lost
     more than ``MAX_REDUCTION_LOSS`` of the image's variance, a tilt scan
     (±``TILT_SCAN_DEG`` in ``TILT_SCAN_STEP_DEG`` steps), and a compass search over slant and
-    tilt together (steps 2°, 1°, 0.5°; they are coupled). The misfit is invariant under
+    tilt together (steps 2°, 1°, 0.5°; they are coupled). An image larger than
+    ``FINAL_SIDE_PX`` has the final stage run again on the image itself (at most
+    ``FULL_SIDE_PX``, from the same reduced-image stage), and keeps, of the two lights, the one
+    that fits the full image better (a free albedo before one at the bound). The misfit is invariant under
     ``tilt -> tilt + 180°`` with the height negated (bumps versus dents), so the tilt stays
     on the side of the statistical estimate (light from the top of the image).
 
@@ -534,23 +548,39 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     """
     coarse = _misfit_function(img, valid, censored, side, periodic=periodic)
     final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
+    full = None
+    if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
+        full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
     # The candidate lights of each step of the search are solved side by side (forked_map).
-    fits = (coarse, final)
+    fits = (coarse, final) if full is None else (coarse, final, full)
     with forked_map(lambda k, s, t: fits[k].solve_light(s, t), SEARCH_PROCESSES) as map_:
         for k, fit in enumerate(fits):
             fit.map_ = lambda lights, k=k: map_([(k, s, t) for s, t in lights])
-        knee, coarse_misfit, found = _search_light(coarse, final, lossy, float(slant), float(tilt))
-        swept = _swept_tilt(coarse, knee, float(tilt))
-        if swept is None:
+
+        def search(last):
+            # The coarse stage, and the final one on the misfit `last`; then the swept tilt's.
+            knee, coarse_misfit, found = _search_light(coarse, last, lossy, float(slant), float(tilt))
+            swept = _swept_tilt(coarse, knee, float(tilt))
+            if swept is None:
+                return found
+            _, _, other = _search_light(coarse, last, lossy, float(slant), swept,
+                                        beat=SECOND_SEARCH_GAIN * coarse_misfit)
+            # The other search's light is kept where it fits better with the albedo free (both
+            # misfits are cached: each search ended on its light's).
+            if (other is not None and not other.at_bound
+                    and last(other.slant, other.tilt)[0] < last(found.slant, found.tilt)[0]):
+                return other
             return found
-        _, _, other = _search_light(coarse, final, lossy, float(slant), swept, beat=SECOND_SEARCH_GAIN * coarse_misfit)
-        # The other search's light is kept where it fits better with the albedo free (both
-        # misfits are cached: each search ended on its light's).
-        if (other is not None and not other.at_bound
-                and final(other.slant, other.tilt)[0] < final(found.slant, found.tilt)[0]):
-            return other
-        return found
+
+        found = search(final)
+        if full is None:
+            return found
+        # The coarse stage again from its cache, the final stage at full resolution; of the
+        # two lights, the one that fits the full image better (a free albedo first).
+        at_full = search(full)
+        return min((at_full, found), key=lambda f: (full(f.slant, f.tilt)[1] >= full.at_bound,
+                                                   full(f.slant, f.tilt)[0]))
 
 
 def _swept_tilt(coarse, slant: float, tilt: float) -> float | None:
