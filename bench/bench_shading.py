@@ -518,7 +518,7 @@ def _larger_tile_rows(quick: bool) -> list[str]:
                 lines.append(f"| {side} | {name} | {slant:g}, {tilt:g} | {e_given:.3f} | " + " | ".join(cells) + " |")
     count = len(sides) * 4 * len(lights)
     lines += ["", f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline"
-              f" {worse['baseline']} of {count}, default {worse['default']} of {count}; the searches' summed"
+              f" {worse['baseline']} of {count}, default {worse['default']} of {count}; the solves' summed"
               f" seconds: baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
               f" ({seconds['default'] / seconds['baseline']:.1f} x)."]
     return lines

@@ -326,9 +326,9 @@ def estimated_light_note(light: Light, periodic: bool = True) -> str:
     if not periodic:
         note += (
             "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
-            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 27 estimates left"
-            " the heights more than 5 points worse than the true light's, 12 of them not flagged"
-            " UNRELIABLE (the true light turned 3° in tilt does that to 34 of them): give --light"
+            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 29 estimates left"
+            " the heights more than 5 points worse than the true light's, 16 of them not flagged"
+            " UNRELIABLE (the true light turned 3° in tilt does that to 43 of them): give --light"
             " when it is known"
         )
     return note
