@@ -493,7 +493,8 @@ def _larger_tile_rows(quick: bool) -> list[str]:
     lines = ["", f"Light estimated on tiles larger than the search's final image ({FINAL_SIDE_PX} px; it is"
              " block-averaged to that size, which darkens rough shading and blurs a weave's crossings):"
              " height error with the light given, then with the light estimated, the estimate (slant,"
-             " tilt; † = flagged unreliable) and the seconds of the whole solve (search and heights). Baseline, same run: without the"
+             " tilt; † = flagged unreliable) and the seconds of the whole solve (search and heights)."
+             " Baseline, same run: without the"
              " final stage's second run on the image itself (`shading_light.FULL_SIDE_PX` ="
              f" `FINAL_SIDE_PX`); the default runs it (up to {shading_light.FULL_SIDE_PX} px) and keeps"
              " the light that fits the full image better:", "",

@@ -1620,7 +1620,8 @@ def test_a_larger_tiles_light_is_searched_again_at_full_resolution(monkeypatch):
     # The light kept fits the full image better than the averaged stage's.
     fit = shading_light._misfit_function(img, valid_pixels(img), _censored_pixels(img), 512,
                                          shading_light._block_average)
-    assert fit(lights[full].slant_deg, lights[full].tilt_deg)[0] < fit(lights[final].slant_deg, lights[final].tilt_deg)[0]
+    misfit = {side: fit(light.slant_deg, light.tilt_deg)[0] for side, light in lights.items()}
+    assert misfit[full] < misfit[final]
 
 
 def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
