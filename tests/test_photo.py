@@ -145,6 +145,35 @@ def test_light_is_estimated_on_a_small_window_at_full_resolution(caplog):
     assert normalised_height_error(height, truth_um[y, x].ravel()) < 0.1
 
 
+def test_a_long_light_search_is_announced(caplog, monkeypatch):
+    # Without a small periodic window the light is searched on the image solved (up to a
+    # minute on a 1 Mpx photo): the user is told before it starts, and how to skip it.
+    import haptex_compile.photo as photo_module
+    import haptex_compile.shading as shading_module
+
+    class Started(Exception):
+        pass
+
+    def search_starts(*args, light=None, **kwargs):
+        assert light is None
+        raise Started
+
+    monkeypatch.setattr(photo_module, "_light_from_small_window", lambda *a: (None, None))
+    monkeypatch.setattr(shading_module, "shape_from_shading", search_starts)
+    t1, t2 = (21.0, 0.0), (0.0, 16.5)
+    image = render_lambertian(lattice_relief((256, 256), t1, t2, amplitude_um=12.0), PIXEL_UM, Light(30.0, 200.0), 0.8)
+    logger = logging.getLogger("haptex")
+    logger.addHandler(caplog.handler)
+    caplog.set_level(logging.INFO, logger="haptex")
+    try:
+        with pytest.raises(Started):
+            photo_surface(image, PIXEL_UM, SourceOptions(roughness="none", relief_um=10.0), "rendered", {})
+    finally:
+        logger.removeHandler(caplog.handler)
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert any("estimating the light on a periodic window" in m and "--light" in m for m in said)
+
+
 def test_a_steep_light_flagged_at_its_bound_is_left_steep():
     # A plain weave lit at 55°: the window's estimate sits at the albedo bound (flagged) at
     # 58°, above the plateau where the image does not fix the slant (35° + slopes, capped at
