@@ -579,8 +579,12 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         # The coarse stage again from its cache, the final stage at full resolution; of the
         # two lights, the one that fits the full image better (a free albedo first).
         at_full = search(full)
-        return min((at_full, found), key=lambda f: (full(f.slant, f.tilt)[1] >= full.at_bound,
-                                                   full(f.slant, f.tilt)[0]))
+
+        def rank(f):
+            misfit, albedo = full(f.slant, f.tilt)
+            return albedo >= full.at_bound, misfit
+
+        return min((at_full, found), key=rank)
 
 
 def _swept_tilt(coarse, slant: float, tilt: float) -> float | None:
