@@ -483,24 +483,14 @@ LARGER_SIDES = (512, 768)
 LARGER_TARGET = 0.05
 
 
-def _larger_tile_rows(quick: bool) -> list[str]:
-    """The light estimated on tiles larger than the search's final image (``FINAL_SIDE_PX``):
-    the four surfaces at ``LARGER_SIDES`` (quick: 384 px, two lights), slants 15-60°; height
-    error with the light given and estimated, the estimate and the solve's seconds, with and
-    (baseline, same run) without the full-resolution stage (``FULL_SIDE_PX``); then the count
-    of estimates more than ``LARGER_TARGET`` worse than the given light, and the summed times."""
-    sides, lights = ((384,), LIGHTS[:2]) if quick else (LARGER_SIDES, LIGHTS[:4])
-    lines = ["", f"Light estimated on tiles larger than the search's final image ({FINAL_SIDE_PX} px; it is"
-             " block-averaged to that size, which darkens rough shading and blurs a weave's crossings):"
-             " height error with the light given, then with the light estimated, the estimate (slant,"
-             " tilt; † = flagged unreliable) and the seconds of the whole solve (search and heights)."
-             " Baseline, same run: without the"
-             " final stage's second run on the image itself (`shading_light.FULL_SIDE_PX` ="
-             f" `FINAL_SIDE_PX`); the default runs it (up to {shading_light.FULL_SIDE_PX} px) and keeps"
-             " the light that fits the full image better:", "",
-             "| side (px) | surface | slant, tilt (°) | light given | baseline: error | light | s"
-             " | default: error | light | s |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    worse, seconds, count = {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}, 0
+def _estimated_against_baseline(sides, lights, attr: str, baseline, bound_column: bool = False) -> list[str]:
+    """Rows of a table of the light estimated on the four surfaces at `sides` and `lights`:
+    the height error with the light given, then with the light estimated under the baseline
+    (``shading_light.<attr> = baseline``, same run) and the default (the estimate, † =
+    flagged, and the whole solve's seconds); with `bound_column`, the search's albedo bound
+    I_top / ``ALIGN_COS`` first. Then the count of estimates more than ``LARGER_TARGET`` worse
+    than the given light, and the summed times."""
+    worse, seconds, count, rows = {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}, 0, []
     for side in sides:
         for name, truth in _surfaces(side).items():
             for slant, tilt in lights:
@@ -508,20 +498,66 @@ def _larger_tile_rows(quick: bool) -> list[str]:
                 given = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=Light(slant, tilt), periodic=True)
                 e_given = normalised_height_error(given.height, truth)
                 cells, count = [], count + 1
-                for key, full_side in (("baseline", FINAL_SIDE_PX), ("default", shading_light.FULL_SIDE_PX)):
-                    with mock.patch.object(shading_light, "FULL_SIDE_PX", full_side):
+                if bound_column:
+                    cells.append(f"{float(np.percentile(img, 99.9)) / shading_light.ALIGN_COS:.3f}")
+                cells.append(f"{e_given:.3f}")
+                for key, value in (("baseline", baseline), ("default", getattr(shading_light, attr))):
+                    with mock.patch.object(shading_light, attr, value):
                         t0 = time.perf_counter()
                         found = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
                         seconds[key] += (dt := time.perf_counter() - t0)
                     light, e = found.light, normalised_height_error(found.height, truth)
                     worse[key] += e > e_given + LARGER_TARGET
                     cells.append(f"{e:.3f} | {light.slant_deg:.1f}, {light.tilt_deg:.1f}{_flag(light)} | {dt:.1f}")
-                lines.append(f"| {side} | {name} | {slant:g}, {tilt:g} | {e_given:.3f} | " + " | ".join(cells) + " |")
-    lines += ["", f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline"
-              f" {worse['baseline']} of {count}, default {worse['default']} of {count}; the solves' summed"
-              f" seconds: baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
-              f" ({seconds['default'] / seconds['baseline']:.1f} x)."]
-    return lines
+                rows.append(f"| {side} | {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    return rows + ["", f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline"
+                   f" {worse['baseline']} of {count}, default {worse['default']} of {count}; the solves' summed"
+                   f" seconds: baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
+                   f" ({seconds['default'] / seconds['baseline']:.2f} x)."]
+
+
+_ESTIMATE_HEADER = ("| side (px) | surface | slant, tilt (°) | {}light given | baseline: error | light | s"
+                    " | default: error | light | s |")
+
+
+def _larger_tile_rows(quick: bool) -> list[str]:
+    """The light estimated on tiles larger than the search's final image (``FINAL_SIDE_PX``):
+    the four surfaces at ``LARGER_SIDES`` (quick: 384 px, two lights), slants 15-60°, with and
+    (baseline, same run) without the full-resolution stage (``FULL_SIDE_PX``); see
+    :func:`_estimated_against_baseline`."""
+    sides, lights = ((384,), LIGHTS[:2]) if quick else (LARGER_SIDES, LIGHTS[:4])
+    return ["", f"Light estimated on tiles larger than the search's final image ({FINAL_SIDE_PX} px; it is"
+            " block-averaged to that size, which darkens rough shading and blurs a weave's crossings):"
+            " height error with the light given, then with the light estimated, the estimate (slant,"
+            " tilt; † = flagged unreliable) and the seconds of the whole solve (search and heights)."
+            " Baseline, same run: without the"
+            " final stage's second run on the image itself (`shading_light.FULL_SIDE_PX` ="
+            f" `FINAL_SIDE_PX`); the default runs it (up to {shading_light.FULL_SIDE_PX} px) and keeps"
+            " the light that fits the full image better:", "",
+            _ESTIMATE_HEADER.format(""), "| --- " * 10 + "|",
+            *_estimated_against_baseline(sides, lights, "FULL_SIDE_PX", FINAL_SIDE_PX)]
+
+
+STEEP_SIDES = (256, 512)
+STEEP_BOUND_LIGHTS = ((55.0, 160.0), (60.0, 300.0))
+
+
+def _steep_bound_rows(quick: bool) -> list[str]:
+    """Steep light with the search's albedo bound below the true albedo: the four surfaces at
+    ``STEEP_SIDES`` (quick: 128 px, one light) lit at ``STEEP_BOUND_LIGHTS``, with (default)
+    and without (baseline, same run: ``shading_light.STEEP_ALIGN_COS = None``) the second look
+    under a looser bound; see :func:`_estimated_against_baseline`."""
+    sides, lights = ((128,), STEEP_BOUND_LIGHTS[1:]) if quick else (STEEP_SIDES, STEEP_BOUND_LIGHTS)
+    return ["", "Steep light and the light search's albedo bound (I_top / cos 35°, `shading_light.ALIGN_COS`):"
+            " under a steep light a gentle relief may have no normal within 35° of it, and the bound then lies"
+            f" below the true albedo ({ALBEDO:g}), so the true light cannot fit. A flagged estimate steeper than"
+            f" {shading_light.PLATEAU_MAX_DEG:g}° is searched again with the bound at I_top / cos 45°"
+            " (`shading_light.STEEP_ALIGN_COS`) and that light kept if its albedo is free there (still flagged)."
+            " Baseline, same run: without that second look (`STEEP_ALIGN_COS = None`). The bound, the height"
+            " error with the light given, then estimated (slant, tilt; † = flagged unreliable) and the seconds"
+            " of the whole solve:", "",
+            _ESTIMATE_HEADER.format("bound | "), "| --- " * 11 + "|",
+            *_estimated_against_baseline(sides, lights, "STEEP_ALIGN_COS", None, bound_column=True)]
 
 
 def _light_search_rows(n: int, quick: bool) -> list[str]:
@@ -1046,6 +1082,7 @@ def run(quick: bool = False) -> str:
                          f" {ratio:.2g}{' b' if true_at_bound else ''})")
         lines.append(f"| {t1}; {t2} | " + " | ".join(cells) + f" | {max(gaps):+.3f} |")
     lines += _larger_tile_rows(quick)
+    lines += _steep_bound_rows(quick)
     lines += _light_search_rows(128 if quick else n, quick)
     tn = 512 if quick else 1024
     times = [_timing(tn, Light(*light), repeats=1 if quick else 2) for light in TIMING_LIGHTS]

@@ -64,6 +64,16 @@ WELL_DEPTH = 0.3
 # with the bound active (photo bench, lattice windows lit at 55°: 50-58°), left as it is (the
 # search below it took a plain weave's window from 0.371 to 1.000).
 PLATEAU_MAX_DEG = 47.5
+# A flagged estimate steeper than that is looked at again with the albedo bounded by
+# I_top / STEEP_ALIGN_COS (cos 45°; None: not looked at): under a steep light no normal of a
+# gentle relief need come within 35° of it, and the bound then lies below the true albedo, so
+# the true light cannot fit. Random bumps (RMS slope 0.2) lit at 60°: the bound was 0.75-0.80
+# for an albedo of 0.8, and the search stopped at 57.5-59° where the bound bit; with the
+# looser bound the misfit has its well at the true slant (256 px: misfit 3.6e-4 at 60°, 3.7e-4
+# at 61°, 5.4e-4 at 59°). The compass search is run again from the estimate under that bound,
+# and its light kept if its albedo is free there; it stays flagged (on a gentle lattice relief
+# lit at 55° the looser bound bites too, and the light it gave was as far off).
+STEEP_ALIGN_COS: float | None = float(np.cos(np.deg2rad(45.0)))
 KNEE_FACTOR = 1.25
 # The tilt sweep of the light search (see _swept_tilt): steps over 180° at the first knee's
 # slant, and how much lower than the statistical tilt's a free-albedo misfit must be for the
@@ -285,7 +295,7 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     slant_sd = float(min(max(slant_sd, 5.0), 90.0))
     albedo, at_bound = None, False
     if refine:
-        slant, tilt, slant_sd, tilt_sd, albedo, at_bound = _refine_light(
+        slant, tilt, slant_sd, tilt_sd, albedo, at_bound, _ = _refine_light(
             img, valid, slant, tilt, censored if censored is not None else _censored_pixels(img, mask),
             periodic=periodic,
         )
@@ -320,7 +330,9 @@ def estimated_light_note(light: Light, periodic: bool = True) -> str:
             " upper bound, where it does not fix the slant (near-frontal light, a low relief or"
             f" a steep light lands there); a plateau below {PLATEAU_MAX_DEG:g}° was searched"
             " again beneath (the ± spans it): on the bench such estimates were right for 5 of 7"
-            " lattice reliefs lit at 5-15°, otherwise up to 18° off in slant and 70° in tilt:"
+            " lattice reliefs lit at 5-15°, otherwise up to 18° off in slant and 70° in tilt;"
+            " a steeper light again with the albedo's bound loosened (under a steep light a gentle"
+            " relief may have no normal near it, and the bound then lies below the true albedo):"
             " give --light"
         )
     if not periodic:
@@ -347,15 +359,16 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True, align_cos=None):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
 
     For each light the default solver fits a surface, with the exact reflectance on every
-    level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data
-    energy left (thin-plate term excluded); on a plain image (`periodic` False), outside a
-    band of ``PLAIN_MISFIT_BAND`` times each side along the edges. ``fit.at_bound`` is the
-    albedo from which a fit counts as held at that bound (``AT_BOUND_FRACTION`` of it).
+    level and the albedo bounded above by ``I_top / align_cos`` (default ``ALIGN_COS``); the
+    misfit is the data energy left (thin-plate term excluded); on a plain image (`periodic`
+    False), outside a band of ``PLAIN_MISFIT_BAND`` times each side along the edges.
+    ``fit.at_bound`` is the albedo from which a fit counts as held at that bound
+    (``AT_BOUND_FRACTION`` of it).
     `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
     (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
     :func:`_refine_light` runs in worker processes; by default, one by one), and
@@ -378,6 +391,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
             frac = reduce(full, everywhere, side_px)[0] * (w == 0)
             cens[key] = frac if frac.any() else None
     top = float(np.percentile(small[w > 0], 99.9))
+    align_cos = ALIGN_COS if align_cos is None else align_cos
     w_misfit = w
     if not periodic:
         w_misfit = np.zeros_like(w)
@@ -391,7 +405,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         # The exact reflectance on every level: the misfits of different lights are
         # compared, and the coarse levels' damping depends on the light.
         lv = Light(s, t % 360.0).vector
-        z, a = solve_variational(small, w, lv, top, albedo_max=top / ALIGN_COS, subgrid_damping=0.0, **cens)
+        z, a = solve_variational(small, w, lv, top, albedo_max=top / align_cos, subgrid_damping=0.0, **cens)
         e = energy(small, w_misfit, lv, a, z, lam=0.0, **cens)
         # A failed solve ranks last (np.argmin would take a NaN for the minimum).
         return (e if np.isfinite(e) else np.inf, a)
@@ -417,7 +431,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         if todo:
             cache.update(zip(todo, fit.map_(list(todo.values()))))
 
-    fit.at_bound = AT_BOUND_FRACTION * top / ALIGN_COS
+    fit.at_bound = AT_BOUND_FRACTION * top / align_cos
     fit.solve_light, fit.prefetch = solve_light, prefetch
     fit.map_ = lambda lights: [solve_light(s, t) for s, t in lights]
     return fit
@@ -459,6 +473,7 @@ class _LightFit(NamedTuple):
     tilt_sd: float
     albedo: float
     at_bound: bool
+    relaxed: bool = False  # found under the looser albedo bound (STEEP_ALIGN_COS)
 
 
 def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, periodic=True) -> _LightFit:
@@ -545,6 +560,12 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         0.867 -> 0.042); the others were left at the statistics' slant (e.g. Brownian at 5°:
         0.960 -> 0.614, 0.603 with the light given). Cost: about 30-50 more solves, 2-4 s at
         256 px.
+
+        A flagged estimate steeper than ``PLATEAU_MAX_DEG`` is searched again (compass) with
+        the albedo bound loosened to ``I_top / STEEP_ALIGN_COS``, and that light kept if its
+        albedo is free there; it stays flagged. Of two lights from the final and the
+        full-resolution stages, one free under the search's bound ranks first, then one free
+        under the looser bound.
     """
     coarse = _misfit_function(img, valid, censored, side, periodic=periodic)
     final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
@@ -552,20 +573,29 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
         full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
+    # The final stages' misfits under the looser albedo bound, for a steep flagged estimate.
+    steep = {}
+    if STEEP_ALIGN_COS is not None:
+        for f, side_px in ((final, FINAL_SIDE_PX), (full, FULL_SIDE_PX)):
+            if f is not None:
+                steep[id(f)] = _misfit_function(img, valid, censored, side_px, _block_average,
+                                                periodic=periodic, align_cos=STEEP_ALIGN_COS)
     # The candidate lights of each step of the search are solved side by side (forked_map).
     fits = (coarse, final) if full is None else (coarse, final, full)
+    fits = fits + tuple(steep.values())
     with forked_map(lambda k, s, t: fits[k].solve_light(s, t), SEARCH_PROCESSES) as map_:
         for k, fit in enumerate(fits):
             fit.map_ = lambda lights, k=k: map_([(k, s, t) for s, t in lights])
 
         def search(last):
             # The coarse stage, and the final one on the misfit `last`; then the swept tilt's.
-            knee, coarse_misfit, found = _search_light(coarse, last, lossy, float(slant), float(tilt))
+            knee, coarse_misfit, found = _search_light(coarse, last, lossy, float(slant), float(tilt),
+                                                       steep=steep.get(id(last)))
             swept = _swept_tilt(coarse, knee, float(tilt))
             if swept is None:
                 return found
             _, _, other = _search_light(coarse, last, lossy, float(slant), swept,
-                                        beat=SECOND_SEARCH_GAIN * coarse_misfit)
+                                        beat=SECOND_SEARCH_GAIN * coarse_misfit, steep=steep.get(id(last)))
             # The other search's light is kept where it fits better with the albedo free (both
             # misfits are cached: each search ended on its light's).
             if (other is not None and not other.at_bound
@@ -581,8 +611,11 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         at_full = search(full)
 
         def rank(f):
-            misfit, albedo = full(f.slant, f.tilt)
-            return albedo >= full.at_bound, misfit
+            # A light free under the search's albedo bound first, then one free under the
+            # looser bound of a steep light's second look, then the rest; by misfit.
+            judge = steep[id(full)] if f.relaxed else full
+            misfit, albedo = judge(f.slant, f.tilt)
+            return (2 if albedo >= judge.at_bound else int(f.relaxed)), misfit
 
         return min((at_full, found), key=rank)
 
@@ -619,13 +652,14 @@ def _free_misfit(fit, slant: float, tilt: float) -> float:
 
 
 def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: float,
-                  beat: float | None = None) -> tuple[float, float, _LightFit | None]:
+                  beat: float | None = None, steep=None) -> tuple[float, float, _LightFit | None]:
     """One search of :func:`_refine_light` from the statistical `slant` and `tilt`, with the
     misfit functions `coarse` (reduced image) and `final`; `reduction_lossy`: the reduced image
     lost more than ``MAX_REDUCTION_LOSS`` of the variance. Returns the first knee's slant, the
     reduced image's misfit at the end of its stage, and the search's :class:`_LightFit`;
     that is None if `beat` is given and the reduced image's misfit is not below it (the
-    final stage is then skipped)."""
+    final stage is then skipped). `steep`: `final`'s misfit under the looser albedo bound
+    (``STEEP_ALIGN_COS``), or None."""
     stat_slant = float(slant)
 
     def misfits(e_fn, lights, top=np.inf):
@@ -707,6 +741,18 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     s, t = compass(e_of, s, t)
     bound = fit.at_bound  # a fitted albedo this high is at the bound
     plateau = None
+    relaxed = False
+    if steep is not None and fit(s, t)[1] >= bound and s > PLATEAU_MAX_DEG:
+        # A steep light with the albedo at its bound: that bound may lie below the true
+        # albedo (STEEP_ALIGN_COS). The compass search again under a looser one; its light
+        # is kept if its albedo is free there (still flagged).
+        fit = steep
+        s_r, t_r = compass(lambda a, b: steep(a, b)[0], s, t)
+        if steep(s_r, t_r)[1] < steep.at_bound:
+            s, t, relaxed, bound = s_r, t_r, True, steep.at_bound
+            e_of = lambda s_, t_: steep(s_, t_)[0]  # noqa: E731
+        else:
+            fit = final
     if fit(s, t)[1] >= bound and stat_slant < s <= PLATEAU_MAX_DEG:
         # On the plateau of steep lights with the albedo at its bound, where the misfit does
         # not fix the slant. Below it the true light's well is deep and narrow (lattice
@@ -746,10 +792,11 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     slant_sd = float(np.hypot(max(half_width(e_s_minus, e_s_plus), 1.0), CAP_BIAS_DEG))
     tilt_sd = max(half_width(e_t_minus, e_t_plus), 0.5)
     albedo = fit(s, t)[1]
-    at_bound = albedo >= bound
+    at_bound = relaxed or albedo >= bound
     if plateau is not None:
         # The plateau fits as well: the ± spans it. Still flagged.
         at_bound = True
         slant_sd = max(slant_sd, plateau[0] - s)
         tilt_sd = max(tilt_sd, tilt_axis_difference_deg(plateau[1], t))
-    return knee, coarse_misfit, _LightFit(s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound))
+    return knee, coarse_misfit, _LightFit(s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound),
+                                          relaxed)

@@ -1624,6 +1624,29 @@ def test_a_larger_tiles_light_is_searched_again_at_full_resolution(monkeypatch):
     assert misfit[full] < misfit[final]
 
 
+def test_a_steep_light_held_by_the_albedo_bound_is_searched_again_under_a_looser_one(monkeypatch):
+    # Random bumps (RMS slope 0.2) lit at 60°: no normal comes within 35° of the light, so the
+    # search's albedo bound I_top / cos 35° lies below the true albedo (0.8) and the true light
+    # cannot fit; the search stopped where the bound bit (57.5°, flagged). Under the looser
+    # bound (cos 45°) the misfit's well is at the true slant.
+    h = ts.random_bumps((128, 128), PX, seed=1)
+    truth = Light(60.0, 300.0)
+    img = render_lambertian(h, PX, truth, 0.8, periodic=True)
+    assert np.percentile(img, 99.9) / shading_light.ALIGN_COS < 0.8
+    found, _ = estimate_light(img)
+    monkeypatch.setattr(shading_light, "STEEP_ALIGN_COS", None)
+    tight, _ = estimate_light(img)
+    assert tight.albedo_at_bound and tight.slant_deg <= 58.0
+    assert found.albedo_at_bound  # still flagged: the looser bound is an assumption too
+    assert abs(found.slant_deg - 60.0) <= 0.5
+    assert tilt_axis_difference_deg(found.tilt_deg, 300.0) <= 1.0
+    given = shape_from_shading(img, pixel_size_um=PX, light=truth, periodic=True)
+    e_given = normalised_height_error(given.height, h)
+    e_found = normalised_height_error(shape_from_shading(img, pixel_size_um=PX, light=found, periodic=True).height, h)
+    e_tight = normalised_height_error(shape_from_shading(img, pixel_size_um=PX, light=tight, periodic=True).height, h)
+    assert e_found <= e_given + 0.02 < e_tight
+
+
 def test_light_search_gives_the_same_light_in_worker_processes(monkeypatch):
     # The candidate lights are solved side by side in forked workers (SEARCH_PROCESSES); each
     # solve is independent of the others, so the estimate is the same bit for bit. A lattice
