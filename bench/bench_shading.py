@@ -538,7 +538,7 @@ def _larger_tile_rows(quick: bool) -> list[str]:
             *_estimated_against_baseline(sides, lights, "FULL_SIDE_PX", FINAL_SIDE_PX)]
 
 
-STEEP_SIDES = (256, 512)
+STEEP_SIDES = (256,)
 STEEP_BOUND_LIGHTS = ((55.0, 160.0), (60.0, 300.0))
 
 
