@@ -610,14 +610,22 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         # two lights, the one that fits the full image better (a free albedo first).
         at_full = search(full)
 
-        def rank(f):
-            # A light free under the search's albedo bound first, then one free under the
-            # looser bound of a steep light's second look, then the rest; by misfit.
-            judge = steep[id(full)] if f.relaxed else full
-            misfit, albedo = judge(f.slant, f.tilt)
-            return (2 if albedo >= judge.at_bound else int(f.relaxed)), misfit
+        # Where both are flagged and one came from a steep light's second look, the looser
+        # bound judges both (a 512 px Brownian surface lit at 60°: the 256 px stage's light,
+        # flagged there, is free at full resolution under the search's bound, and would win on
+        # that alone); an unflagged light is judged under the search's bound, where a light
+        # from the looser one sits at the bound (a plain crop of the sphere cap lit at 45°:
+        # 45°, unflagged, against 60° from the looser bound).
+        pair = (at_full, found)
+        judge = full
+        if any(f.relaxed for f in pair) and all(f.at_bound for f in pair):
+            judge = steep[id(full)]
 
-        return min((at_full, found), key=rank)
+        def rank(f):
+            misfit, albedo = judge(f.slant, f.tilt)
+            return albedo >= judge.at_bound, misfit
+
+        return min(pair, key=rank)
 
 
 def _swept_tilt(coarse, slant: float, tilt: float) -> float | None:
