@@ -368,7 +368,8 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
     misfit is the data energy left (thin-plate term excluded); on a plain image (`periodic`
     False), outside a band of ``PLAIN_MISFIT_BAND`` times each side along the edges.
     ``fit.at_bound`` is the albedo from which a fit counts as held at that bound
-    (``AT_BOUND_FRACTION`` of it).
+    (``AT_BOUND_FRACTION`` of it); ``fit.looser`` is None, or the same image's misfit under a
+    looser bound (set by :func:`_refine_light`).
     `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
     (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
     :func:`_refine_light` runs in worker processes; by default, one by one), and
@@ -432,6 +433,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
             cache.update(zip(todo, fit.map_(list(todo.values()))))
 
     fit.at_bound = AT_BOUND_FRACTION * top / align_cos
+    fit.looser = None
     fit.solve_light, fit.prefetch = solve_light, prefetch
     fit.map_ = lambda lights: [solve_light(s, t) for s, t in lights]
     return fit
@@ -505,9 +507,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     tilt together (steps 2°, 1°, 0.5°; they are coupled). An image larger than
     ``FINAL_SIDE_PX`` has the final stage run again on the image itself (at most
     ``FULL_SIDE_PX``, from the same reduced-image stage), and keeps, of the two lights, the one
-    that fits the full image better (a free albedo before one at the bound). The misfit is invariant under
-    ``tilt -> tilt + 180°`` with the height negated (bumps versus dents), so the tilt stays
-    on the side of the statistical estimate (light from the top of the image).
+    that fits the full image better (a free albedo before one at the bound). The misfit is
+    invariant under ``tilt -> tilt + 180°`` with the height negated (bumps versus dents), so
+    the tilt stays on the side of the statistical estimate (light from the top of the image).
 
     Those steps are local, and the statistical tilt assumes an isotropic surface: a lattice
     relief's own anisotropy can turn it far from the light (31° on a 16 px oblique lattice,
@@ -575,29 +577,26 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
         full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
-    # The final stages' misfits under the looser albedo bound, for a steep flagged estimate.
-    steep = {}
+    stages = [(f, side_px) for f, side_px in ((final, FINAL_SIDE_PX), (full, FULL_SIDE_PX)) if f is not None]
     if STEEP_ALIGN_COS is not None:
-        for f, side_px in ((final, FINAL_SIDE_PX), (full, FULL_SIDE_PX)):
-            if f is not None:
-                steep[id(f)] = _misfit_function(img, valid, censored, side_px, _block_average,
-                                                periodic=periodic, align_cos=STEEP_ALIGN_COS)
+        # Each final stage's misfit under the looser albedo bound, for a steep flagged estimate.
+        for f, side_px in stages:
+            f.looser = _misfit_function(img, valid, censored, side_px, _block_average, periodic=periodic,
+                                        align_cos=STEEP_ALIGN_COS)
     # The candidate lights of each step of the search are solved side by side (forked_map).
-    fits = (coarse, final) if full is None else (coarse, final, full)
-    fits = fits + tuple(steep.values())
+    fits = (coarse, *(f for f, _ in stages), *(f.looser for f, _ in stages if f.looser is not None))
     with forked_map(lambda k, s, t: fits[k].solve_light(s, t), SEARCH_PROCESSES) as map_:
         for k, fit in enumerate(fits):
             fit.map_ = lambda lights, k=k: map_([(k, s, t) for s, t in lights])
 
         def search(last):
             # The coarse stage, and the final one on the misfit `last`; then the swept tilt's.
-            knee, coarse_misfit, found = _search_light(coarse, last, lossy, float(slant), float(tilt),
-                                                       steep=steep.get(id(last)))
+            knee, coarse_misfit, found = _search_light(coarse, last, lossy, float(slant), float(tilt))
             swept = _swept_tilt(coarse, knee, float(tilt))
             if swept is None:
                 return found
             _, _, other = _search_light(coarse, last, lossy, float(slant), swept,
-                                        beat=SECOND_SEARCH_GAIN * coarse_misfit, steep=steep.get(id(last)))
+                                        beat=SECOND_SEARCH_GAIN * coarse_misfit)
             # The other search's light is kept where it fits better with the albedo free (both
             # misfits are cached: each search ended on its light's).
             if (other is not None and not other.at_bound
@@ -621,7 +620,7 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         pair = (at_full, found)
         judge = full
         if any(f.relaxed for f in pair) and all(f.at_bound for f in pair):
-            judge = steep[id(full)]
+            judge = full.looser
 
         def rank(f):
             misfit, albedo = judge(f.slant, f.tilt)
@@ -662,14 +661,14 @@ def _free_misfit(fit, slant: float, tilt: float) -> float:
 
 
 def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: float,
-                  beat: float | None = None, steep=None) -> tuple[float, float, _LightFit | None]:
+                  beat: float | None = None) -> tuple[float, float, _LightFit | None]:
     """One search of :func:`_refine_light` from the statistical `slant` and `tilt`, with the
     misfit functions `coarse` (reduced image) and `final`; `reduction_lossy`: the reduced image
     lost more than ``MAX_REDUCTION_LOSS`` of the variance. Returns the first knee's slant, the
     reduced image's misfit at the end of its stage, and the search's :class:`_LightFit`;
     that is None if `beat` is given and the reduced image's misfit is not below it (the
-    final stage is then skipped). `steep`: `final`'s misfit under the looser albedo bound
-    (``STEEP_ALIGN_COS``), or None."""
+    final stage is then skipped). A steep estimate at the bound is searched again on
+    ``final.looser`` when there is one."""
     stat_slant = float(slant)
 
     def misfits(e_fn, lights, top=np.inf):
@@ -751,7 +750,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
     s, t = compass(e_of, s, t)
     bound = fit.at_bound  # a fitted albedo this high is at the bound
     plateau = None
-    relaxed = False
+    relaxed, steep = False, final.looser
     if steep is not None and fit(s, t)[1] >= bound and s > PLATEAU_MAX_DEG:
         # A steep light with the albedo at its bound: that bound may lie below the true
         # albedo (STEEP_ALIGN_COS). The compass search again under a looser one; its light
@@ -808,5 +807,5 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         at_bound = True
         slant_sd = max(slant_sd, plateau[0] - s)
         tilt_sd = max(tilt_sd, tilt_axis_difference_deg(plateau[1], t))
-    return knee, coarse_misfit, _LightFit(s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo, bool(at_bound),
-                                          relaxed)
+    return knee, coarse_misfit, _LightFit(s, t % 360.0, min(slant_sd, 90.0), min(tilt_sd, 90.0), albedo,
+                                          bool(at_bound), relaxed)
