@@ -57,6 +57,7 @@ import numpy as np
 import scipy.fft as sfft
 import cv2
 
+from haptex_compile.malloc_policy import keep_freed_memory
 from haptex_compile.shading_image import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 from haptex_compile.shading_kernels import (
     albedo_sums_rows, cg_direction_rows, cg_update_rows, energy_rows, gn_setup_rows, jacobian_rows, normal_rows,
@@ -1005,6 +1006,7 @@ def solve_variational(
         Height in pixel units (float32), mean 0.
     albedo : float
     """
+    keep_freed_memory()  # the levels' temporaries are reused, not faulted in afresh
     pyramid = [(image.astype(_F), weight.astype(_F), dark, bright)]
     mid_cg = fine_cg if mid_cg is None else mid_cg
     damping = SUBGRID_DAMPING if subgrid_damping is None else float(subgrid_damping)
