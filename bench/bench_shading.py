@@ -30,13 +30,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
+import subprocess
+import sys
 import time
 from unittest import mock
 
 import numpy as np
 
 from haptex_compile import known_surfaces as ts
-from haptex_compile import shading, shading_light
+from haptex_compile import malloc_policy, shading, shading_light
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.forked_map import worker_count
 from haptex_compile.sources import remove_plane
@@ -1111,6 +1114,11 @@ def run(quick: bool = False) -> str:
               " megapixel | error | plain image: s per megapixel | error |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |",
               *_surface_timing_rows(tn, repeats=1 if quick else 2)]
+    lines += ["", f"The same 16 solves at {tn} x {tn} px, light given, with glibc's default malloc and with"
+              " the solver's (`haptex_compile.malloc_policy`: freed blocks kept for reuse rather than"
+              " handed back and faulted in again in the next CG iteration), each in a fresh process:", "",
+              "| | default malloc | the solver's policy | ratio |", "| --- | --- | --- | --- |",
+              *_malloc_policy_rows(tn, repeats=1 if quick else 2)]
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
               " pyramid, the pyramid holding the waves across the light from level 2, and the"
               " full-resolution continuation, the lowest energy kept: `shading_starts._bare_tile_starts`)"
@@ -1163,6 +1171,42 @@ def _surface_timing_rows(n: int, repeats: int) -> list[str]:
     return rows
 
 
+def _policy_times(n: int, repeats: int) -> dict[str, float]:
+    """Summed seconds (best of `repeats` each) of the default solver on the four surfaces of
+    side `n` at the first four ``LIGHTS``, light given, as tiles and as plain images, and the
+    slowest plain image's seconds per megapixel: in this process's malloc policy."""
+    out = {"tile": 0.0, "plain": 0.0, "slowest plain": 0.0}
+    surfaces = _surfaces(n)
+    warm = next(iter(surfaces.values()))[:64, :64]  # the compiled kernels load on a first solve
+    for periodic in (True, False):
+        shape_from_shading(render_lambertian(warm, PIXEL_UM, Light(*LIGHTS[0]), ALBEDO, periodic=periodic),
+                           pixel_size_um=PIXEL_UM, light=Light(*LIGHTS[0]), periodic=periodic)
+    for truth in surfaces.values():
+        for slant, tilt in LIGHTS[:4]:
+            light = Light(slant, tilt)
+            for periodic, key in ((True, "tile"), (False, "plain")):
+                img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
+                best, _ = _best_solve(img, light, periodic, repeats)
+                out[key] += best
+                if not periodic:
+                    out["slowest plain"] = max(out["slowest plain"], best / (n * n / 1e6))
+    return out
+
+
+def _malloc_policy_rows(n: int, repeats: int) -> list[str]:
+    """:func:`_policy_times` with glibc's default malloc and with
+    ``haptex_compile.malloc_policy`` (each in a fresh process: the policy is process-wide and
+    cannot be undone), and the ratios."""
+    times = {}
+    for mode in ("off", "on"):
+        out = subprocess.run([sys.executable, __file__, "--policy-times", mode, str(n), str(repeats)],
+                             capture_output=True, text=True, check=True, timeout=1200)
+        times[mode] = json.loads(out.stdout.strip().splitlines()[-1])
+    return [f"| {label} | {times['off'][key]:.2f} | {times['on'][key]:.2f} | {times['on'][key] / times['off'][key]:.2f} |"
+            for key, label in (("tile", "tiles: summed s"), ("plain", "plain images: summed s"),
+                               ("slowest plain", "slowest plain image: s per megapixel"))]
+
+
 def _aligned_timing_rows(sides) -> list[str]:
     """Seconds per megapixel and height error of the default solver on random bumps (seed 5)
     of each side, lit along the x axis (45°, 0°) and 3° off it (45°, 3°), light given."""
@@ -1182,7 +1226,14 @@ def _aligned_timing_rows(sides) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small images (under a minute)")
+    parser.add_argument("--policy-times", nargs=3, metavar=("on|off", "SIDE", "REPEATS"),
+                        help="print _policy_times as JSON, with the malloc policy on or off (a fresh process)")
     args = parser.parse_args()
+    if args.policy_times:
+        mode, side, repeats = args.policy_times
+        malloc_policy.ENABLED = mode == "on"
+        print(json.dumps(_policy_times(int(side), int(repeats))))
+        return
     print(run(quick=args.quick))
 
 
