@@ -9,11 +9,13 @@ iteration faults its pages in again (zeroed by the kernel). Measured on a 1 Mpx 
 (``MMAP_THRESHOLD_BYTES``) and a high one for returning free memory (``TRIM_THRESHOLD_BYTES``),
 freed blocks stay in the heap and are reused: the 16 bench surfaces at 1024 px, summed, plain
 images 19.1 -> 17.3 s and tiles 12.2 -> 11.6 s (one run each way, same heights); at 256 px the
-time is within the noise, the page faults 170 000 -> 1 500 (plain images).
+time is within the noise, the page faults 170 000 -> 1 500 (plain images). The light search's
+forked workers gain nothing: their system time falls as much as their user time rises (six
+searches on 256-512 px images, summed over two runs each way: 69.5 s without, 70.5 s with).
 
 The settings are process-wide (and inherited by forked workers): at most
 ``TRIM_THRESHOLD_BYTES`` of freed memory is kept rather than returned. Only glibc has them;
-elsewhere nothing is changed. ``ENABLED = False`` leaves malloc alone.
+elsewhere nothing is changed. ``ENABLED = False`` before the first solve leaves malloc alone.
 """
 from __future__ import annotations
 

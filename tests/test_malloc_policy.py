@@ -1,4 +1,4 @@
-"""The malloc policy of large solves: freed blocks are reused, not handed back and faulted in."""
+"""The solver's malloc policy: freed blocks are reused, not handed back and faulted in again."""
 from __future__ import annotations
 
 import platform
