@@ -1144,27 +1144,34 @@ def _best_solve(img: np.ndarray, light: Light, periodic: bool, repeats: int):
     return best, res
 
 
+def _timing_cases(surfaces: dict[str, np.ndarray]):
+    """(name, truth, light, {periodic: image}) of each surface at each of the first four
+    ``LIGHTS``: the timing tables' solves, rendered as a tile and as a plain image."""
+    for name, truth in surfaces.items():
+        for slant, tilt in LIGHTS[:4]:
+            light = Light(slant, tilt)
+            yield name, truth, light, {periodic: render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
+                                       for periodic in (True, False)}
+
+
 def _surface_timing_rows(n: int, repeats: int) -> list[str]:
     """Seconds per megapixel (best of `repeats`) and height error of the default solver on
     each surface of side `n` at the first four ``LIGHTS``, light given: as a tile, as a tile
     without ``DEFAULT_SOLVER``'s large-level cap, and as a plain image; then the slowest of
     each and the summed times' ratio."""
     rows, slowest, totals = [], [0.0, 0.0, 0.0], [0.0, 0.0]
-    for name, truth in _surfaces(n).items():
-        for slant, tilt in LIGHTS[:4]:
-            light = Light(slant, tilt)
-            images = {periodic: render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
-                      for periodic in (True, False)}
-            cells = []
-            for k, (periodic, patch) in enumerate([(True, {}), (True, {"large_level_cap": None}), (False, {})]):
-                with mock.patch.dict(DEFAULT_SOLVER, patch):
-                    best, res = _best_solve(images[periodic], light, periodic, repeats)
-                per_mp = best / (n * n / 1e6)
-                slowest[k] = max(slowest[k], per_mp)
-                if k < 2:
-                    totals[k] += best
-                cells.append(f"{per_mp:.2f} | {normalised_height_error(res.height, truth):.3f}")
-            rows.append(f"| {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    for name, truth, light, images in _timing_cases(_surfaces(n)):
+        slant, tilt = light.slant_deg, light.tilt_deg
+        cells = []
+        for k, (periodic, patch) in enumerate([(True, {}), (True, {"large_level_cap": None}), (False, {})]):
+            with mock.patch.dict(DEFAULT_SOLVER, patch):
+                best, res = _best_solve(images[periodic], light, periodic, repeats)
+            per_mp = best / (n * n / 1e6)
+            slowest[k] = max(slowest[k], per_mp)
+            if k < 2:
+                totals[k] += best
+            cells.append(f"{per_mp:.2f} | {normalised_height_error(res.height, truth):.3f}")
+        rows.append(f"| {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
     rows += ["", f"Slowest: tile {slowest[0]:.2f} s per megapixel (without the cap {slowest[1]:.2f}),"
              f" plain image {slowest[2]:.2f}; the tiles' summed time with the cap over without it:"
              f" {totals[0] / totals[1]:.2f}."]
@@ -1181,15 +1188,12 @@ def _policy_times(n: int, repeats: int) -> dict[str, float]:
     for periodic in (True, False):
         shape_from_shading(render_lambertian(warm, PIXEL_UM, Light(*LIGHTS[0]), ALBEDO, periodic=periodic),
                            pixel_size_um=PIXEL_UM, light=Light(*LIGHTS[0]), periodic=periodic)
-    for truth in surfaces.values():
-        for slant, tilt in LIGHTS[:4]:
-            light = Light(slant, tilt)
-            for periodic, key in ((True, "tile"), (False, "plain")):
-                img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
-                best, _ = _best_solve(img, light, periodic, repeats)
-                out[key] += best
-                if not periodic:
-                    out["slowest plain"] = max(out["slowest plain"], best / (n * n / 1e6))
+    for _, _, light, images in _timing_cases(surfaces):
+        for periodic, key in ((True, "tile"), (False, "plain")):
+            best, _ = _best_solve(images[periodic], light, periodic, repeats)
+            out[key] += best
+            if not periodic:
+                out["slowest plain"] = max(out["slowest plain"], best / (n * n / 1e6))
     return out
 
 

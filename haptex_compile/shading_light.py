@@ -359,17 +359,18 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True, align_cos=None):
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
 
     For each light the default solver fits a surface, with the exact reflectance on every
-    level and the albedo bounded above by ``I_top / align_cos`` (default ``ALIGN_COS``); the
-    misfit is the data energy left (thin-plate term excluded); on a plain image (`periodic`
-    False), outside a band of ``PLAIN_MISFIT_BAND`` times each side along the edges.
-    ``fit.at_bound`` is the albedo from which a fit counts as held at that bound
-    (``AT_BOUND_FRACTION`` of it); ``fit.looser`` is None, or the same image's misfit under a
-    looser bound (set by :func:`_refine_light`).
+    level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data energy
+    left (thin-plate term excluded); on a plain image (`periodic` False), outside a band of
+    ``PLAIN_MISFIT_BAND`` times each side along the edges. ``fit.at_bound`` is the albedo from
+    which a fit counts as held at that bound (``AT_BOUND_FRACTION`` of it).
+    ``fit.loosened(align_cos)`` is the same reduced image's misfit with the bound at
+    ``I_top / align_cos``; ``fit.looser`` is None, or such a misfit (set by
+    :func:`_refine_light`).
     `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
     (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
     :func:`_refine_light` runs in worker processes; by default, one by one), and
@@ -392,7 +393,6 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
             frac = reduce(full, everywhere, side_px)[0] * (w == 0)
             cens[key] = frac if frac.any() else None
     top = float(np.percentile(small[w > 0], 99.9))
-    align_cos = ALIGN_COS if align_cos is None else align_cos
     w_misfit = w
     if not periodic:
         w_misfit = np.zeros_like(w)
@@ -400,43 +400,49 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         w_misfit[br:w.shape[0] - br, bc:w.shape[1] - bc] = w[br:w.shape[0] - br, bc:w.shape[1] - bc]
         if w_misfit.sum() < 0.25 * w.sum():
             w_misfit = w  # a mask that leaves little data inside the band: keep it all
-    cache: dict[tuple[float, float], tuple[float, float]] = {}
 
-    def solve_light(s, t):
-        # The exact reflectance on every level: the misfits of different lights are
-        # compared, and the coarse levels' damping depends on the light.
-        lv = Light(s, t % 360.0).vector
-        z, a = solve_variational(small, w, lv, top, albedo_max=top / align_cos, subgrid_damping=0.0, **cens)
-        e = energy(small, w_misfit, lv, a, z, lam=0.0, **cens)
-        # A failed solve ranks last (np.argmin would take a NaN for the minimum).
-        return (e if np.isfinite(e) else np.inf, a)
+    def build(align_cos: float):
+        # A misfit on the reduced image above, the albedo bounded by top / align_cos.
+        cache: dict[tuple[float, float], tuple[float, float]] = {}
 
-    def key_of(s, t):
-        s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
-        return (round(s, 3), round(float(t) % 360.0, 3)), s
+        def solve_light(s, t):
+            # The exact reflectance on every level: the misfits of different lights are
+            # compared, and the coarse levels' damping depends on the light.
+            lv = Light(s, t % 360.0).vector
+            z, a = solve_variational(small, w, lv, top, albedo_max=top / align_cos, subgrid_damping=0.0, **cens)
+            e = energy(small, w_misfit, lv, a, z, lam=0.0, **cens)
+            # A failed solve ranks last (np.argmin would take a NaN for the minimum).
+            return (e if np.isfinite(e) else np.inf, a)
 
-    def fit(s, t):
-        key, s = key_of(s, t)
-        if key not in cache:
-            cache[key] = solve_light(s, t)
-        return cache[key]
+        def key_of(s, t):
+            s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
+            return (round(s, 3), round(float(t) % 360.0, 3)), s
 
-    def prefetch(lights):
-        # The lights not cached yet, solved at once by fit.map_ (the same solves, in the
-        # same order, as fitting them one by one).
-        todo: dict = {}
-        for s, t in lights:
+        def fit(s, t):
             key, s = key_of(s, t)
             if key not in cache:
-                todo.setdefault(key, (s, t))
-        if todo:
-            cache.update(zip(todo, fit.map_(list(todo.values()))))
+                cache[key] = solve_light(s, t)
+            return cache[key]
 
-    fit.at_bound = AT_BOUND_FRACTION * top / align_cos
-    fit.looser = None
-    fit.solve_light, fit.prefetch = solve_light, prefetch
-    fit.map_ = lambda lights: [solve_light(s, t) for s, t in lights]
-    return fit
+        def prefetch(lights):
+            # The lights not cached yet, solved at once by fit.map_ (the same solves, in the
+            # same order, as fitting them one by one).
+            todo: dict = {}
+            for s, t in lights:
+                key, s = key_of(s, t)
+                if key not in cache:
+                    todo.setdefault(key, (s, t))
+            if todo:
+                cache.update(zip(todo, fit.map_(list(todo.values()))))
+
+        fit.at_bound = AT_BOUND_FRACTION * top / align_cos
+        fit.looser = None
+        fit.solve_light, fit.prefetch = solve_light, prefetch
+        fit.map_ = lambda lights: [solve_light(s, t) for s, t in lights]
+        fit.loosened = build
+        return fit
+
+    return build(ALIGN_COS)
 
 
 def light_misfit(image, light: Light, *, mask=None, periodic: bool = True) -> tuple[float, bool]:
@@ -577,14 +583,14 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
         full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
-    stages = [(f, side_px) for f, side_px in ((final, FINAL_SIDE_PX), (full, FULL_SIDE_PX)) if f is not None]
+    stages = [f for f in (final, full) if f is not None]
     if STEEP_ALIGN_COS is not None:
-        # Each final stage's misfit under the looser albedo bound, for a steep flagged estimate.
-        for f, side_px in stages:
-            f.looser = _misfit_function(img, valid, censored, side_px, _block_average, periodic=periodic,
-                                        align_cos=STEEP_ALIGN_COS)
+        # Each final stage's misfit under the looser albedo bound, for a steep flagged estimate
+        # (the same reduced image).
+        for f in stages:
+            f.looser = f.loosened(STEEP_ALIGN_COS)
     # The candidate lights of each step of the search are solved side by side (forked_map).
-    fits = (coarse, *(f for f, _ in stages), *(f.looser for f, _ in stages if f.looser is not None))
+    fits = (coarse, *stages, *(f.looser for f in stages if f.looser is not None))
     with forked_map(lambda k, s, t: fits[k].solve_light(s, t), SEARCH_PROCESSES) as map_:
         for k, fit in enumerate(fits):
             fit.map_ = lambda lights, k=k: map_([(k, s, t) for s, t in lights])
@@ -755,7 +761,7 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
         # A steep light with the albedo at its bound: that bound may lie below the true
         # albedo (STEEP_ALIGN_COS). The compass search again under a looser one; its light
         # is kept if its albedo is free there (still flagged).
-        fit = steep
+        fit = steep  # the misfit that misfits() prefetches
         s_r, t_r = compass(lambda a, b: steep(a, b)[0], s, t)
         if steep(s_r, t_r)[1] < steep.at_bound:
             s, t, relaxed, bound = s_r, t_r, True, steep.at_bound
