@@ -716,9 +716,12 @@ def shape_from_shading(
                                          weave_basis_px, np.where(known, img, np.nan))
             starts += from_cell or shading_starts._fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
         z, albedo = shading_starts._lowest_energy(dom_img, weight, light, domain_kwargs, starts, weave_basis_px)
-    z = z[:rows, :cols].astype(np.float64)
+    z = z[:rows, :cols]
+    # The runaway check in the solver's float32 (1 Mpx: 23 -> 7 ms against float64).
     gy, gx = np.gradient(z)
-    if not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0:
+    runaway = not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0
+    z = z.astype(np.float64)
+    if runaway:
         warnings.append(
             "the solver ran away (non-finite or slopes > 50); fell back to a flat height"
         )

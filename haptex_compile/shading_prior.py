@@ -22,6 +22,7 @@ well: the image cannot tell it from a weave.
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft as sfft
 
 # Powers below this fraction of the table's largest count as it, and the symbol never exceeds
 # CAP times albedo² sin²θ |ω|² (100 x the flat-on-average prior's largest; float32 conditioning).
@@ -68,12 +69,25 @@ def along_light_power(image: np.ndarray, light_vec, albedo: float, *, max_cycles
         return None
     rows, cols = image.shape
     # A Hann window, so that the image's edges (not periodic) do not leak into the long waves.
-    win = np.outer(np.hanning(rows), np.hanning(cols))
-    x = (image - np.sum(image * win) / np.sum(win)) * win
-    spec = np.fft.rfft2(x) / np.sqrt(np.sum(win * win) * image.size)
-    ky = np.fft.fftfreq(rows, 1.0 / rows)[:, None]
-    kx = np.fft.rfftfreq(cols, 1.0 / cols)[None, :]
+    hy, hx = np.hanning(rows), np.hanning(cols)
+    win_sum = float(hy.sum() * hx.sum())
+    x = np.asarray(image, dtype=np.float64) * hy[:, None]
+    x *= hx[None, :]
+    mean = float(x.sum()) / win_sum
+    x -= mean * hy[:, None] * hx[None, :]  # (image - windowed mean) x window
     side = max(rows, cols)
+    # Only the rings up to max_cycles are wanted: the waves of at most max_cycles + 1/2
+    # cycles per longer side along each axis. Their spectrum is the rows' transforms at those
+    # columns, transformed along the columns at those rows (1 Mpx: 30 -> 9 ms against an
+    # rfft2 of the whole image of which a tiny corner was kept).
+    top_x = min(cols // 2, int(np.floor((max_cycles + 0.5) * cols / side)))
+    top_y = min(rows // 2, int(np.floor((max_cycles + 0.5) * rows / side)))
+    cols_x = sfft.rfft(x, axis=1, workers=2)[:, : top_x + 1]
+    ky = np.unique(np.r_[np.arange(top_y + 1), np.arange(rows - top_y, rows)] % rows)
+    norm = np.sqrt(float(np.sum(hy * hy) * np.sum(hx * hx)) * image.size)
+    spec = sfft.fft(cols_x, axis=0)[ky] / norm
+    ky = np.fft.fftfreq(rows, 1.0 / rows)[ky][:, None]
+    kx = np.arange(top_x + 1, dtype=float)[None, :]
     ring = np.rint(np.hypot(kx * side / cols, ky * side / rows)).astype(int)
     wx, wy = 2 * np.pi * kx / cols, 2 * np.pi * ky / rows
     along = lx * wx + ly * wy

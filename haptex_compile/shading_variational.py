@@ -304,8 +304,9 @@ class _Problem:
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None,
                  bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0):
-        self.img = image.astype(_F)
-        self.w = weight.astype(_F)
+        # (not copied where they are float32 already: a level's arrays are only read)
+        self.img = image.astype(_F, copy=False)
+        self.w = weight.astype(_F, copy=False)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
         # only that albedo R <= DARK_LEVEL (attached shadow: the surface faces away from the
         # light), saturated ones that albedo R >= BRIGHT_LEVEL. One-sided terms.
@@ -399,13 +400,13 @@ class _Problem:
         or on the rectangle of waves that holds the kept ones, and the plane's rank-two term)."""
         if self._lf_block is not None:
             b, sym = self._lf_block
-            rows, cols = v.shape
             means = _block_means(v, b)
             out_b = sfft.irfft2(sfft.rfft2(means) * sym, s=means.shape).astype(_F, copy=False)
             if self._plane is not None:
                 self._plane.add_to(means, out_b)
-            # b² P^T (P: the block means): each block's value on its b² pixels.
-            return cv2.resize(out_b, (cols, rows), interpolation=cv2.INTER_NEAREST)
+            # b² P^T (P: the block means): each block's value on its b² pixels (whole rows
+            # copied last: 1200 px level, 0.56 -> 0.13 ms against cv2's nearest resize).
+            return np.repeat(np.repeat(out_b, b, axis=1), b, axis=0)
         cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
         spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
         spec *= self._lf_sym
@@ -696,7 +697,7 @@ _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32
 def _noise_sigma(img, w):
     """Robust estimate of white image noise (Immerkaer's mask, median of its response over
     pixels whose 3 x 3 neighbourhood is valid; the mask's norm is 6)."""
-    resp = _filter_periodic(img.astype(np.float32), _NOISE_KERNEL)
+    resp = _filter_periodic(img.astype(np.float32, copy=False), _NOISE_KERNEL)
     valid = cv2.copyMakeBorder((w > 0.5).astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_WRAP)
     full = cv2.erode(valid, np.ones((3, 3), np.uint8))[1:-1, 1:-1] > 0
     if not full.any():

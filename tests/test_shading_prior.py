@@ -62,6 +62,45 @@ def test_along_light_power_is_the_slope_along_the_light_over_its_frequency():
             assert p[ring] == pytest.approx(np.mean(power), rel=0.25)
 
 
+def _half_spectrum_power(image: np.ndarray, light: Light, max_cycles: int, cone_deg: float = 30.0) -> np.ndarray:
+    """along_light_power's definition over the whole half spectrum (rfft2 of the windowed
+    image): each ring's mean of |Z|² / (albedo² (l . w)²) over its waves within the cone."""
+    rows, cols = image.shape
+    win = np.outer(np.hanning(rows), np.hanning(cols))
+    x = (image - np.sum(image * win) / np.sum(win)) * win
+    spec = np.fft.rfft2(x) / np.sqrt(np.sum(win * win) * image.size)
+    ky = np.fft.fftfreq(rows, 1.0 / rows)[:, None]
+    kx = np.fft.rfftfreq(cols, 1.0 / cols)[None, :]
+    side = max(rows, cols)
+    ring = np.rint(np.hypot(kx * side / cols, ky * side / rows))
+    lx, ly = light.vector[:2]
+    wx, wy = 2 * np.pi * kx / cols, 2 * np.pi * ky / rows
+    along, w2 = lx * wx + ly * wy, wx * wx + wy * wy
+    cone = along * along >= np.cos(np.deg2rad(cone_deg)) ** 2 * (lx * lx + ly * ly) * w2
+    out = np.full(max_cycles + 1, np.nan)
+    for c in range(1, max_cycles + 1):
+        sel = (ring == c) & cone & (w2 > 0)
+        if sel.any():
+            out[c] = np.mean(np.abs(spec[sel]) ** 2 / (0.64 * along[sel] ** 2))
+    return out
+
+
+@pytest.mark.parametrize("shape", [(96, 96), (61, 150), (150, 61), (9, 14), (5, 5)])
+def test_along_light_power_keeps_every_wave_of_its_rings(shape):
+    # Only the low-frequency corner of the spectrum is computed: it must hold every wave of
+    # the rings asked for, on any aspect ratio and odd sides (the same means as over the
+    # whole half spectrum, to rounding).
+    rng = np.random.default_rng(shape[0] * 1000 + shape[1])
+    img = 0.5 + 0.2 * rng.random(shape)
+    for tilt in (0.0, 35.0, 120.0, 250.0):
+        light = Light(40.0, tilt)
+        for max_cycles in (1, 6, 10):
+            got = along_light_power(img, light.vector, 0.8, max_cycles=max_cycles)
+            want = _half_spectrum_power(img, light, max_cycles)
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+            np.testing.assert_allclose(got[1:], want[1:], rtol=1e-10)
+
+
 def test_along_light_power_of_a_tone():
     # A tone along the light: its ring holds the power, which grows as the amplitude squared;
     # the rings below it hold almost nothing (the window's leakage).
