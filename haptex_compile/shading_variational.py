@@ -304,9 +304,9 @@ class _Problem:
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None,
                  bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0):
-        # (not copied where they are float32 already: a level's arrays are only read)
-        self.img = image.astype(_F, copy=False)
-        self.w = weight.astype(_F, copy=False)
+        # (not copied where they are contiguous float32 already: a level's arrays are only read)
+        self.img = np.ascontiguousarray(image, dtype=_F)
+        self.w = np.ascontiguousarray(weight, dtype=_F)
         # Censored pixels (weights, fractions of the pixel at coarse levels): black ones say
         # only that albedo R <= DARK_LEVEL (attached shadow: the surface faces away from the
         # light), saturated ones that albedo R >= BRIGHT_LEVEL. One-sided terms.

@@ -1191,6 +1191,32 @@ def _no_runaway(res: SfsResult, truth: np.ndarray) -> None:
     assert _slope_rms(res.height) < 5.0 * _slope_rms(truth) + 0.5
 
 
+@pytest.mark.parametrize("kind, slope, falls_back", [("ramp", 40.0, False), ("ramp", 60.0, True), ("nan", 0.0, True)])
+def test_a_runaway_solve_falls_back_to_a_flat_height(kind, slope, falls_back, monkeypatch):
+    # The driver's last guard: heights with a non-finite value or a slope above 50 (pixel
+    # units) are replaced by a flat height, warned of and named in the method; below that
+    # the solver's heights pass through.
+    from haptex_compile import shading_variational
+
+    n = 32
+    x = np.arange(n, dtype=np.float32)
+    z = np.tile(slope * x, (n, 1)).astype(np.float32)  # slope px per px along x
+    if kind == "nan":
+        z[5, 7] = np.nan
+    monkeypatch.setattr(shading_variational, "solve_variational", lambda *a, **k: (z.copy(), 0.8))
+    img = np.full((n, n), 0.5) + 0.1 * np.sin(2 * np.pi * x / 8)[None, :]
+    res = shape_from_shading(img, pixel_size_um=PX, light=Light(45.0, 30.0), periodic=True)
+    assert np.all(np.isfinite(res.height))
+    ran_away = any("ran away" in w for w in res.warnings)
+    assert ran_away == falls_back
+    assert res.method.endswith("+flat-fallback") == falls_back
+    if falls_back:
+        assert np.all(res.height == 0.0)
+    else:
+        # the ramp, in µm, mean 0
+        np.testing.assert_allclose(np.diff(res.height, axis=1), slope * PX, rtol=1e-6)
+
+
 def test_light_straight_above_warns_and_falls_back(bumps128):
     light = Light(0.0, 0.0)
     img = render_lambertian(bumps128, PX, light, 0.8, periodic=True)
