@@ -62,7 +62,8 @@ def test_along_light_power_is_the_slope_along_the_light_over_its_frequency():
             assert p[ring] == pytest.approx(np.mean(power), rel=0.25)
 
 
-def _half_spectrum_power(image: np.ndarray, light: Light, max_cycles: int, cone_deg: float = 30.0) -> np.ndarray:
+def _half_spectrum_power(image: np.ndarray, light: Light, max_cycles: int, albedo: float = 0.8,
+                         cone_deg: float = 30.0) -> np.ndarray:
     """along_light_power's definition over the whole half spectrum (rfft2 of the windowed
     image): each ring's mean of |Z|² / (albedo² (l . w)²) over its waves within the cone."""
     rows, cols = image.shape
@@ -81,7 +82,7 @@ def _half_spectrum_power(image: np.ndarray, light: Light, max_cycles: int, cone_
     for c in range(1, max_cycles + 1):
         sel = (ring == c) & cone & (w2 > 0)
         if sel.any():
-            out[c] = np.mean(np.abs(spec[sel]) ** 2 / (0.64 * along[sel] ** 2))
+            out[c] = np.mean(np.abs(spec[sel]) ** 2 / (albedo * albedo * along[sel] ** 2))
     return out
 
 
