@@ -82,7 +82,8 @@ def along_light_power(image: np.ndarray, light_vec, albedo: float, *, max_cycles
     # rfft2 of the whole image of which a tiny corner was kept).
     top_x = min(cols // 2, int(np.floor((max_cycles + 0.5) * cols / side)))
     top_y = min(rows // 2, int(np.floor((max_cycles + 0.5) * rows / side)))
-    cols_x = sfft.rfft(x, axis=1, workers=2)[:, : top_x + 1]
+    # Two threads from 512 x 512 px up, as the solver's FFTs (smaller ones cost more so).
+    cols_x = sfft.rfft(x, axis=1, workers=2 if x.size >= 1 << 18 else 1)[:, : top_x + 1]
     ky = np.unique(np.r_[np.arange(top_y + 1), np.arange(rows - top_y, rows)] % rows)
     norm = np.sqrt(float(np.sum(hy * hy) * np.sum(hx * hx)) * image.size)
     spec = sfft.fft(cols_x, axis=0)[ky] / norm
