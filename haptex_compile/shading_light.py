@@ -401,6 +401,11 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         if w_misfit.sum() < 0.25 * w.sum():
             w_misfit = w  # a mask that leaves little data inside the band: keep it all
 
+    def key_of(s, t):
+        # A light's cache key (slant clipped to the searched range), and that slant.
+        s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
+        return (round(s, 3), round(float(t) % 360.0, 3)), s
+
     def build(align_cos: float):
         # A misfit on the reduced image above, the albedo bounded by top / align_cos.
         cache: dict[tuple[float, float], tuple[float, float]] = {}
@@ -413,10 +418,6 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
             e = energy(small, w_misfit, lv, a, z, lam=0.0, **cens)
             # A failed solve ranks last (np.argmin would take a NaN for the minimum).
             return (e if np.isfinite(e) else np.inf, a)
-
-        def key_of(s, t):
-            s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
-            return (round(s, 3), round(float(t) % 360.0, 3)), s
 
         def fit(s, t):
             key, s = key_of(s, t)

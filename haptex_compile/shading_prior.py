@@ -82,12 +82,16 @@ def along_light_power(image: np.ndarray, light_vec, albedo: float, *, max_cycles
     # rfft2 of the whole image of which a tiny corner was kept).
     top_x = min(cols // 2, int(np.floor((max_cycles + 0.5) * cols / side)))
     top_y = min(rows // 2, int(np.floor((max_cycles + 0.5) * rows / side)))
-    # Two threads from 512 x 512 px up, as the solver's FFTs (smaller ones cost more so).
-    cols_x = sfft.rfft(x, axis=1, workers=2 if x.size >= 1 << 18 else 1)[:, : top_x + 1]
-    ky = np.unique(np.r_[np.arange(top_y + 1), np.arange(rows - top_y, rows)] % rows)
+    # Two threads where the solver's FFTs take two (smaller transforms cost more so). Imported
+    # here: shading_variational imports this module.
+    from haptex_compile.shading_variational import PARALLEL_FFT_MIN_PIXELS
+
+    workers = 2 if x.size >= PARALLEL_FFT_MIN_PIXELS else 1
+    cols_x = sfft.rfft(x, axis=1, workers=workers)[:, : top_x + 1]
+    kept_rows = np.unique(np.r_[np.arange(top_y + 1), np.arange(rows - top_y, rows)] % rows)
     norm = np.sqrt(float(np.sum(hy * hy) * np.sum(hx * hx)) * image.size)
-    spec = sfft.fft(cols_x, axis=0)[ky] / norm
-    ky = np.fft.fftfreq(rows, 1.0 / rows)[ky][:, None]
+    spec = sfft.fft(cols_x, axis=0)[kept_rows] / norm
+    ky = np.fft.fftfreq(rows, 1.0 / rows)[kept_rows][:, None]
     kx = np.arange(top_x + 1, dtype=float)[None, :]
     ring = np.rint(np.hypot(kx * side / cols, ky * side / rows)).astype(int)
     wx, wy = 2 * np.pi * kx / cols, 2 * np.pi * ky / rows
