@@ -247,7 +247,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     if light is None:
         light, light_on = _light_from_small_window(tile.tile, lattice.basis_px)
         if light is not None:
-            light_notes.append(f"{estimated_light_note(light)} (on {light_on})")
+            light_notes.append(estimated_light_note(light, on=light_on))
             LOG.warning("%s: %s", spec, light_notes[-1])
         else:
             # The search then runs on the image solved, up to 1024 px at full resolution:

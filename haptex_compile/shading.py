@@ -29,6 +29,7 @@ from haptex_compile.shading_image import (
     normalised_height_error,
     render_lambertian,
     tilt_axis_difference_deg,
+    top_level,
     valid_pixels,
 )
 from haptex_compile.shading_light import estimate_light, estimated_light_note, light_misfit
@@ -428,7 +429,7 @@ def level_edge_fraction(image: np.ndarray, valid: np.ndarray | None = None) -> f
 
 
 def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
-                  light: Light | None = None, albedo: float = 0.0):
+                  light: Light | None = None, albedo: float = 0.0, top: float | None = None):
     """The periodic domain the variational solver works on.
 
     A tile is its own domain. A plain image is embedded in a larger periodic domain whose
@@ -437,7 +438,8 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
     flat-on-average prior, tightened where the image's waves along `light` (with `albedo`) show
     no long-wave power (:mod:`haptex_compile.shading_prior`). `censored` is
     :func:`_censored_pixels` of the image. With `light` and no saturated pixel, the albedo is
-    bounded above (``ALBEDO_SLACK``).
+    bounded above (``ALBEDO_SLACK`` x `top` / cos(slant); `top`: :func:`top_level` of the image,
+    computed when not given).
 
     Returns
     -------
@@ -490,7 +492,8 @@ def _solve_domain(img: np.ndarray, valid: np.ndarray, censored, periodic: bool,
     if shading_image.CENSORED:
         kwargs.update(dark=dark, bright=bright)
     if light is not None and valid.any() and not np.any(img[np.isfinite(img)] >= SATURATED):
-        top = float(np.percentile(img[valid], 99.9))
+        if top is None:
+            top = top_level(img, valid)
         kwargs.update(albedo_max=ALBEDO_SLACK * top / float(light.vector[2]))
     return np.where(dom_w, dom_img, fill), dom_w, kwargs
 
@@ -599,12 +602,13 @@ def shape_from_shading(
         used = light if light is not None else Light(0.0, 0.0, 90.0, 180.0)
         top = float(np.max(img[valid])) if valid.any() else 1.0
         return SfsResult(flat, used, top, method, tuple(warnings))
-    censored = _censored_pixels(img, mask)
+    top = top_level(img, valid)  # the brightest pixels' level, taken once for the three users below
+    censored = _censored_pixels(img, mask, top)
     if light is None:
         light, albedo = shading_light._estimate_light(img, valid, mask, True, censored, periodic=periodic)
         warnings.append(estimated_light_note(light, periodic))
     else:
-        albedo = shading_light._moment_albedo(img[valid], light.slant_deg)
+        albedo = shading_light._moment_albedo(img[valid], light.slant_deg, top)
 
     if method == "tsai-shah":
         if light.slant_deg < MIN_SLANT_DEG:
@@ -637,26 +641,18 @@ def shape_from_shading(
             along_weave = (visibility, weave_tilt) if periodic else None
             if np.sin(np.deg2rad(light.slant_deg)) < visibility_min:
                 # Every direction is below the threshold: the cause is the slant, not the tilt.
-                where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly overhead:"
-                         f" sin(slant) x sin(angle to any weave direction) is below {visibility_min:g}"
-                         f" (at the direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: {visibility:.3f})")
+                where = (f"light (slant {light.slant_deg:.1f}°) nearly overhead for every weave direction"
+                         f" (sin(slant) x sin(angle to it) {visibility:.3f} < {visibility_min:g})")
             else:
                 where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
-                         f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}°: sin(slant) x sin(angle between"
-                         f" them) = {visibility:.3f} < {visibility_min:g}")
-            if periodic:
-                remedy = ("solved from 2-3 more starts at full resolution (on a small"
-                          " periodic window of the lattice, the best polished on the tile), the lowest energy kept, and"
-                          " they may still come back wrong (bench: of 54 such lights on plain weaves and"
-                          " smooth cells, 7 gave height errors above 0.1, up to 0.74, against 25 from the pyramid alone)")
-            else:
-                remedy = ("the image is not a periodic tile, so it is solved from the pyramid alone, and they may"
-                          " come back wrong (bench/bench_photo.py's coarse plain weave lit 7° off t1 - t2 at slant 30°:"
-                          " height error 0.23, against 0.01-0.05 for its other lights)")
+                         f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}° (sin(slant) x sin(angle between"
+                         f" them) {visibility:.3f} < {visibility_min:g})")
+            how = ("solved from 2-3 more starts" if periodic
+                   else "not a periodic tile, so solved from the pyramid alone")
             warnings.append(
-                f"{where}, so the profiles across that direction (the yarns' cross-sections) barely shade;"
-                f" {remedy}; light the fabric so that this product is at least"
-                f" {visibility_min:g} for every weave direction (e.g. slant 45°, 15-30° off the yarns)"
+                f"{where}: the yarns' cross-sections barely shade and may come back wrong ({how}); light"
+                f" the fabric so that this is at least {visibility_min:g} for every weave direction"
+                " (e.g. slant 45°, 15-30° off the yarns)"
             )
     # A weave's window: its axes and diagonals matter only where they run along a weave
     # direction (warned above; the held starts still run); elsewhere the waves across them are
@@ -668,12 +664,9 @@ def shape_from_shading(
     if weave_basis_px is None and aligned is not None and light.slant_deg >= MIN_SLANT_DEG:
         warnings.append(
             f"light tilt {light.tilt_deg:.1f}° within {shading_starts.ALIGNED_TILT_DEG:g}° of the periodic"
-            f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light have"
-            " no slope along it and the shading barely fixes them (solved from 2 starts of the"
-            " pyramid and 1 at full resolution, the lowest energy kept); the heights may be far"
-            " off (bench: normalised errors up to 0.47, a sphere cap along the diagonal at 60°);"
-            f" light the fabric at least {shading_starts.ALIGNED_TILT_DEG:g}° away from its weave's axes and"
-            " diagonals"
+            f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light barely"
+            " shade and the heights may be far off (solved from 3 starts); light the fabric at least"
+            f" {shading_starts.ALIGNED_TILT_DEG:g}° away from its weave's axes and diagonals"
         )
     if light.slant_deg >= GRAZING_DEG:
         warnings.append(
@@ -681,7 +674,7 @@ def shape_from_shading(
             " carry no information and cast shadows are not modelled; expect large errors"
         )
     rows, cols = img.shape
-    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic, light, albedo)
+    dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic, light, albedo, top)
     if z0 is None and light.slant_deg < MIN_SLANT_DEG:
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
     kwargs = {}

@@ -99,12 +99,13 @@ SECOND_SEARCH_GAIN = 0.15
 PLAIN_MISFIT_BAND = 0.15
 
 
-def _moment_albedo(values: np.ndarray, slant_deg: float) -> float:
+def _moment_albedo(values: np.ndarray, slant_deg: float, top: float | None = None) -> float:
     """Albedo from the mean and variance of the intensities, for a known slant.
 
     For a stationary surface the linear term of ``R`` averages out, so with isotropic slopes
     (``<g²> = 2 <g_l²>``) to second order ``mean = a cos s (1 - var / (a² sin² s))``: a
-    quadratic in the albedo ``a``. Bounded below by the brightest pixels (``R <= 1``).
+    quadratic in the albedo ``a``. Bounded below by the brightest pixels (``R <= 1``): `top`,
+    the 99.9th percentile of `values` (computed when not given).
     """
     v = values[np.isfinite(values)]
     if v.size == 0:
@@ -113,7 +114,8 @@ def _moment_albedo(values: np.ndarray, slant_deg: float) -> float:
     s = np.deg2rad(np.clip(slant_deg, 1.0, 85.0))
     c = np.cos(s)
     a = (m + np.sqrt(m * m + 4 * c * c * var / np.sin(s) ** 2)) / (2 * c)
-    top = float(np.percentile(v, 99.9))
+    if top is None:
+        top = float(np.percentile(v, 99.9))
     return float(max(a, top, 1e-3))
 
 
@@ -308,42 +310,26 @@ def _estimate_light(img, valid, mask, refine, censored=None, periodic=True) -> t
     return light, albedo
 
 
-def estimated_light_note(light: Light, periodic: bool = True) -> str:
-    """The warning that states an estimated light and its uncertainty (`periodic` False: it
-    was estimated on a plain image, where the search is less sure)."""
+def estimated_light_note(light: Light, periodic: bool = True, on: str | None = None) -> str:
+    """The one-line warning that states an estimated light and its uncertainty, and what to
+    doubt in it (`periodic` False: it was estimated on a plain image, where the search is less
+    sure; `on`: what it was estimated on, e.g. "a periodic window of 190 x 142 px"). The
+    evidence behind each clause is in docs/shading.md ("Warnings, and what to do").
+    """
+    where = "" if on is None else f" on {on}"
     note = (
-        f"light estimated: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
-        f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (the tilt's 180° ambiguity, bumps"
-        " versus dents, is resolved by assuming light from the top of the image; the ± is the"
-        " width of the misfit's minimum and does not cover other minima: on low lattice reliefs"
-        " lit at 15-30° the search has settled 4-23° steeper, so give --light when it is known)"
+        f"light estimated{where}: slant {light.slant_deg:.1f} ± {light.slant_sd_deg:.1f}°, tilt"
+        f" {light.tilt_deg:.1f} ± {light.tilt_sd_deg:.1f}° (lit from the top of the image; the ±"
+        " does not cover other minima)"
     )
     if light.slant_sd_deg > 0 and light.slant_deg <= MIN_SLANT_DEG:
-        note += (
-            f"; the slant is the search's lowest ({MIN_SLANT_DEG:g}°): the light may be nearer the"
-            " view axis still (diffuse or coaxial light, as in inspection photos), where the shading"
-            " barely fixes the slopes' signs: give --light if it is known"
-        )
+        note += (f"; the slant is the search's lowest ({MIN_SLANT_DEG:g}°): the light may be nearer"
+                 " the view axis still")
     if light.albedo_at_bound:
-        note += (
-            "; UNRELIABLE: the misfit was lowest on a plateau of lights with the albedo at its"
-            " upper bound, where it does not fix the slant (near-frontal light, a low relief or"
-            f" a steep light lands there); a plateau below {PLATEAU_MAX_DEG:g}° was searched"
-            " again beneath (the ± spans it): on the bench such estimates were right for 5 of 7"
-            " lattice reliefs lit at 5-15°, otherwise up to 18° off in slant and 70° in tilt;"
-            " a steeper light again with the albedo's bound loosened (under a steep light a gentle"
-            " relief may have no normal near it, and the bound then lies below the true albedo):"
-            " give --light"
-        )
+        note += "; UNRELIABLE: the image does not fix the slant (fitted albedo at its bound)"
     if not periodic:
-        note += (
-            "; on a plain image (not periodic) the estimate is less sure: on 60 random crops"
-            " (90-420 px) of rendered sphere caps, plain weaves and random bumps, 29 estimates left"
-            " the heights more than 5 points worse than the true light's, 16 of them not flagged"
-            " UNRELIABLE (the true light turned 3° in tilt does that to 43 of them): give --light"
-            " when it is known"
-        )
-    return note
+        note += "; on a plain image the estimate is less sure"
+    return note + "; give --light when it is known"
 
 
 def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downsample_to) -> float:

@@ -778,6 +778,18 @@ def test_a_light_estimated_on_a_plain_image_says_it_is_less_sure():
     assert "plain image" not in shading.estimated_light_note(light)
 
 
+def test_the_estimated_lights_note_is_one_short_line_with_every_clause():
+    # Every clause at once (the lowest slant, flagged, on a plain image, and where it was
+    # estimated): still one line a terminal shows in three or four rows, ending in the remedy.
+    light = Light(shading.MIN_SLANT_DEG, 200.0, 20.0, 30.0, albedo_at_bound=True)
+    note = shading.estimated_light_note(light, periodic=False, on="a periodic window of 190 x 142 px")
+    assert "\n" not in note and len(note) <= 400
+    for clause in ("on a periodic window of 190 x 142 px:", "slant 5.0 ± 20.0°", "search's lowest",
+                   "UNRELIABLE", "plain image", "give --light"):
+        assert clause in note
+    assert note.endswith("give --light when it is known")
+
+
 def test_non_periodic_image_beats_tsai_shah():
     h = ts.random_bumps((128, 128), PX, seed=4)
     light = Light(45.0, 200.0)
