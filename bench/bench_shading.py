@@ -541,6 +541,57 @@ def _larger_tile_rows(quick: bool) -> list[str]:
             *_estimated_against_baseline(sides, lights, "FULL_SIDE_PX", FINAL_SIDE_PX)]
 
 
+# Cases of the table of flagged estimates looked at again below the albedo's bound: the
+# lattice reliefs at 256 px (as the photo-like cells' table), and the 512 px plain weave lit at
+# 30°, 120°, whose estimate stopped on the plateau at 50°.
+WELL_WEAVE = (512, (30.0, 120.0))
+
+
+def _well_rows(quick: bool) -> list[str]:
+    """The light estimated with and (baseline, same run) without the look below a flagged
+    estimate's albedo bound (``shading_light.WELL_CANDIDATES = 0``): height error, the
+    estimate and the seconds of the whole solve; then the count of estimates more than
+    ``LARGER_TARGET`` worse than the given light, and the summed seconds."""
+    cases = []
+    for t1, t2 in LATTICES[:1] if quick else LATTICES:
+        h = lattice_relief((256, 256), t1, t2, amplitude_um=12.0 * t1[0] / 16.0)
+        cases += [(f"lattice {t1}; {t2}, 256 px", h, light) for light in LIGHTS[:4]]
+    if not quick:
+        side, light = WELL_WEAVE
+        cases.append((f"plain weave, {side} px", ts.woven_like((side, side), PIXEL_UM), light))
+    rows, worse, seconds = [], {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}
+    for label, truth, (slant, tilt) in cases:
+        img = render_lambertian(truth, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
+        given = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=Light(slant, tilt), periodic=True)
+        e_given = normalised_height_error(given.height, truth)
+        cells = [f"{e_given:.3f}"]
+        for key, value in (("baseline", 0), ("default", shading_light.WELL_CANDIDATES)):
+            with mock.patch.object(shading_light, "WELL_CANDIDATES", value):
+                t0 = time.perf_counter()
+                found = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
+                seconds[key] += (dt := time.perf_counter() - t0)
+            e = normalised_height_error(found.height, truth)
+            worse[key] += e > e_given + LARGER_TARGET
+            cells.append(f"{e:.3f} | {found.light.slant_deg:.1f}, {found.light.tilt_deg:.1f}{_flag(found.light)} | {dt:.1f}")
+        rows.append(f"| {label} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    return ["", "Flagged estimates looked at again below the albedo's bound"
+            " (`shading_light._well_below_the_bound`): where the final stage's light has its fitted"
+            " albedo at the search's bound (the plateau of steep lights, where the misfit does not fix"
+            " the slant), the reduced image's misfit is scanned below it (slants"
+            f" {shading_light.WELL_MIN_SLANT_DEG:g}° up to the estimate's in {shading_light.WELL_SLANT_STEP_DEG:g}°"
+            f" steps, tilts ±{shading_light.WELL_TILT_SPAN_DEG:g}° in {shading_light.WELL_TILT_STEP_DEG:g}° steps),"
+            f" its {shading_light.WELL_CANDIDATES} lowest local minima with the albedo free followed on the"
+            " final image, and the best kept if it fits better than the estimate. Baseline, same run:"
+            " without that look (`WELL_CANDIDATES = 0`). Height error with the light given, then"
+            " estimated (slant, tilt; † = flagged unreliable) and the seconds of the whole solve:", "",
+            "| case | slant, tilt (°) | light given | baseline: error | light | s | default: error | light | s |",
+            "| --- " * 9 + "|", *rows, "",
+            f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline {worse['baseline']}"
+            f" of {len(cases)}, default {worse['default']} of {len(cases)}; the solves' summed seconds:"
+            f" baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
+            f" ({seconds['default'] / seconds['baseline']:.2f} x)."]
+
+
 STEEP_SIDES = (256,)
 STEEP_BOUND_LIGHTS = ((55.0, 160.0), (60.0, 300.0))
 
@@ -1086,6 +1137,7 @@ def run(quick: bool = False) -> str:
         lines.append(f"| {t1}; {t2} | " + " | ".join(cells) + f" | {max(gaps):+.3f} |")
     lines += _larger_tile_rows(quick)
     lines += _steep_bound_rows(quick)
+    lines += _well_rows(quick)
     lines += _light_search_rows(128 if quick else n, quick)
     tn = 512 if quick else 1024
     times = [_timing(tn, Light(*light), repeats=1 if quick else 2) for light in TIMING_LIGHTS]
