@@ -233,6 +233,7 @@ def _censored_pixels(img: np.ndarray, mask=None, top: float | None = None) -> tu
     and cast shadows have sharp edges and stay plain missing data. Likewise a saturated
     (``>= SATURATED``) region counts as over-exposed shading only if the shading rises to it
     continuously (the pixels around it at least ``OVEREXPOSED_RING``), not a specular highlight.
+    `top`: :func:`top_level` of the image, when the caller has it.
     """
     finite = np.isfinite(img)
     with np.errstate(invalid="ignore"):

@@ -584,8 +584,9 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         error 0.224 -> 0.025; given 0.002), a 512 px plain weave lit at 30°, 120° at 30.5°, 301°
         instead of 50°, 313° (0.745 -> 0.037; given 0.033); every other estimate of
         bench_shading's tiles (256, 512 and 768 px), lattices and near-frontal lights, and of
-        bench_photo's first table, was the same. Cost: 4-8 s more where it runs and finds
-        nothing (steep lights flagged at the bound).
+        bench_photo's tables and bench_light's crops, was the same. Cost, same run: 2-3 s more
+        at 256 px where it runs and finds nothing (the three lattices lit at 60°: 2.7 -> 4.8,
+        2.7 -> 5.7 and 1.8 -> 4.6 s); the 512 px plain weave 13.1 -> 16.3 s.
     """
     coarse = _misfit_function(img, valid, censored, side, periodic=periodic)
     final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
