@@ -1857,6 +1857,15 @@ def test_a_flagged_light_is_looked_at_again_below_its_bound(monkeypatch):
     assert shading_light._well_below_the_bound(coarse, final, flagged) is flagged
 
 
+def test_the_compass_search_stops_where_the_misfit_is_flat():
+    # Neighbours that only tie the centre do not move the walk (they used to, one after
+    # another, for ever): the steps halve and it stops where it started.
+    assert shading_light._compass(lambda a, b: 1.0, 30.0, 200.0, lambda lights: None) == (30.0, 200.0)
+    # A slope it follows, no steeper than `top`, to the edge of the slants it may visit.
+    s, t = shading_light._compass(lambda a, b: -a + 1e-3 * abs(b - 200.0), 30.0, 200.0, lambda lights: None, top=36.0)
+    assert (s, t) == (36.0, 200.0)
+
+
 def test_a_lattice_reliefs_flagged_light_is_replaced_by_the_well_below_it():
     # A smooth square-lattice relief lit at 45°, 200° (256 px): the search stopped at 47.5°,
     # 207° with the albedo at its bound (height error 0.22); below it, the true light's well.
