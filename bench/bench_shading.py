@@ -487,32 +487,39 @@ LARGER_TARGET = 0.05
 
 
 def _estimated_against_baseline(sides, lights, attr: str, baseline, bound_column: bool = False) -> list[str]:
-    """Rows of a table of the light estimated on the four surfaces at `sides` and `lights`:
-    the height error with the light given, then with the light estimated under the baseline
-    (``shading_light.<attr> = baseline``, same run) and the default (the estimate, † =
-    flagged, and the whole solve's seconds); with `bound_column`, the search's albedo bound
-    I_top / ``ALIGN_COS`` first. Then the count of estimates more than ``LARGER_TARGET`` worse
-    than the given light, and the summed times."""
-    worse, seconds, count, rows = {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}, 0, []
-    for side in sides:
-        for name, truth in _surfaces(side).items():
-            for slant, tilt in lights:
-                img = render_lambertian(truth, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
-                given = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=Light(slant, tilt), periodic=True)
-                e_given = normalised_height_error(given.height, truth)
-                cells, count = [], count + 1
-                if bound_column:
-                    cells.append(f"{float(np.percentile(img, 99.9)) / shading_light.ALIGN_COS:.3f}")
-                cells.append(f"{e_given:.3f}")
-                for key, value in (("baseline", baseline), ("default", getattr(shading_light, attr))):
-                    with mock.patch.object(shading_light, attr, value):
-                        t0 = time.perf_counter()
-                        found = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
-                        seconds[key] += (dt := time.perf_counter() - t0)
-                    light, e = found.light, normalised_height_error(found.height, truth)
-                    worse[key] += e > e_given + LARGER_TARGET
-                    cells.append(f"{e:.3f} | {light.slant_deg:.1f}, {light.tilt_deg:.1f}{_flag(light)} | {dt:.1f}")
-                rows.append(f"| {side} | {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    """Rows of a table of the light estimated on the four surfaces at `sides` and `lights`
+    (see :func:`_estimated_rows`; each row starts with the side and the surface)."""
+    return _estimated_rows([(f"{side} | {name}", truth, light) for side in sides
+                            for name, truth in _surfaces(side).items() for light in lights],
+                           attr, baseline, bound_column)
+
+
+def _estimated_rows(cases, attr: str, baseline, bound_column: bool = False) -> list[str]:
+    """Rows of a table of the light estimated on `cases` ((label cells, true heights, (slant,
+    tilt)) each, periodic tiles): the height error with the light given, then with the light
+    estimated under the baseline (``shading_light.<attr> = baseline``, same run) and the
+    default (the estimate, † = flagged, and the whole solve's seconds); with `bound_column`,
+    the search's albedo bound I_top / ``ALIGN_COS`` first. Then the count of estimates more
+    than ``LARGER_TARGET`` worse than the given light, and the summed times."""
+    worse, seconds, rows = {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}, []
+    for label, truth, (slant, tilt) in cases:
+        img = render_lambertian(truth, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
+        given = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=Light(slant, tilt), periodic=True)
+        e_given = normalised_height_error(given.height, truth)
+        cells = []
+        if bound_column:
+            cells.append(f"{float(np.percentile(img, 99.9)) / shading_light.ALIGN_COS:.3f}")
+        cells.append(f"{e_given:.3f}")
+        for key, value in (("baseline", baseline), ("default", getattr(shading_light, attr))):
+            with mock.patch.object(shading_light, attr, value):
+                t0 = time.perf_counter()
+                found = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
+                seconds[key] += (dt := time.perf_counter() - t0)
+            light, e = found.light, normalised_height_error(found.height, truth)
+            worse[key] += e > e_given + LARGER_TARGET
+            cells.append(f"{e:.3f} | {light.slant_deg:.1f}, {light.tilt_deg:.1f}{_flag(light)} | {dt:.1f}")
+        rows.append(f"| {label} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
+    count = len(cases)
     return rows + ["", f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline"
                    f" {worse['baseline']} of {count}, default {worse['default']} of {count}; the solves' summed"
                    f" seconds: baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
@@ -549,9 +556,8 @@ WELL_WEAVE = (512, (30.0, 120.0))
 
 def _well_rows(quick: bool) -> list[str]:
     """The light estimated with and (baseline, same run) without the look below a flagged
-    estimate's albedo bound (``shading_light.WELL_CANDIDATES = 0``): height error, the
-    estimate and the seconds of the whole solve; then the count of estimates more than
-    ``LARGER_TARGET`` worse than the given light, and the summed seconds."""
+    estimate's albedo bound (``shading_light.WELL_CANDIDATES = 0``; see
+    :func:`_estimated_rows`) on the lattice reliefs and the 512 px plain weave."""
     cases = []
     for t1, t2 in LATTICES[:1] if quick else LATTICES:
         h = lattice_relief((256, 256), t1, t2, amplitude_um=12.0 * t1[0] / 16.0)
@@ -559,21 +565,6 @@ def _well_rows(quick: bool) -> list[str]:
     if not quick:
         side, light = WELL_WEAVE
         cases.append((f"plain weave, {side} px", ts.woven_like((side, side), PIXEL_UM), light))
-    rows, worse, seconds = [], {"baseline": 0, "default": 0}, {"baseline": 0.0, "default": 0.0}
-    for label, truth, (slant, tilt) in cases:
-        img = render_lambertian(truth, PIXEL_UM, Light(slant, tilt), ALBEDO, periodic=True)
-        given = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=Light(slant, tilt), periodic=True)
-        e_given = normalised_height_error(given.height, truth)
-        cells = [f"{e_given:.3f}"]
-        for key, value in (("baseline", 0), ("default", shading_light.WELL_CANDIDATES)):
-            with mock.patch.object(shading_light, "WELL_CANDIDATES", value):
-                t0 = time.perf_counter()
-                found = shape_from_shading(img, pixel_size_um=PIXEL_UM, periodic=True)
-                seconds[key] += (dt := time.perf_counter() - t0)
-            e = normalised_height_error(found.height, truth)
-            worse[key] += e > e_given + LARGER_TARGET
-            cells.append(f"{e:.3f} | {found.light.slant_deg:.1f}, {found.light.tilt_deg:.1f}{_flag(found.light)} | {dt:.1f}")
-        rows.append(f"| {label} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
     return ["", "Flagged estimates looked at again below the albedo's bound"
             " (`shading_light._well_below_the_bound`): where the final stage's light has its fitted"
             " albedo at the search's bound (the plateau of steep lights, where the misfit does not fix"
@@ -585,11 +576,7 @@ def _well_rows(quick: bool) -> list[str]:
             " without that look (`WELL_CANDIDATES = 0`). Height error with the light given, then"
             " estimated (slant, tilt; † = flagged unreliable) and the seconds of the whole solve:", "",
             "| case | slant, tilt (°) | light given | baseline: error | light | s | default: error | light | s |",
-            "| --- " * 9 + "|", *rows, "",
-            f"Estimates more than {LARGER_TARGET:g} worse than the given light: baseline {worse['baseline']}"
-            f" of {len(cases)}, default {worse['default']} of {len(cases)}; the solves' summed seconds:"
-            f" baseline {seconds['baseline']:.0f}, default {seconds['default']:.0f}"
-            f" ({seconds['default'] / seconds['baseline']:.2f} x)."]
+            "| --- " * 9 + "|", *_estimated_rows(cases, "WELL_CANDIDATES", 0)]
 
 
 STEEP_SIDES = (256,)
