@@ -785,10 +785,11 @@ def _search_light(coarse, final, reduction_lossy: bool, slant: float, tilt: floa
             errs = misfits(e_of, [(s, c) for c in cands])
             if not np.isfinite(min(errs)):
                 break  # no misfit to follow (the walk would never stop)
-            t_new = cands[int(np.argmin(errs))]
-            if t_new == t:
-                step /= 2
-            t = t_new
+            k = int(np.argmin(errs))
+            if not errs[k] < errs[1]:
+                step /= 2  # nothing better either side (as in _compass: ties do not walk)
+            else:
+                t = cands[k]
         return t
 
     def best(e_of, slants, t):

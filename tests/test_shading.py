@@ -1866,6 +1866,20 @@ def test_the_compass_search_stops_where_the_misfit_is_flat():
     assert (s, t) == (36.0, 200.0)
 
 
+def test_the_light_search_ends_on_a_flat_misfit():
+    # A misfit that is the same for every light (finite, the albedo free): each walk of the
+    # search halves its steps and stops (a tie used to move the tilt's walk, step after step,
+    # for ever); the uncertainty is the widest.
+    def flat(slant, tilt):
+        return 1.0, 0.5
+
+    flat.at_bound, flat.prefetch, flat.looser = 1.0, lambda lights: None, None
+    knee, misfit, found = shading_light._search_light(flat, flat, False, 30.0, 200.0)
+    assert (knee, misfit) == (5.0, 1.0)
+    assert (found.slant_sd, found.tilt_sd) == (90.0, 90.0)
+    assert not found.at_bound
+
+
 def test_a_lattice_reliefs_flagged_light_is_replaced_by_the_well_below_it():
     # A smooth square-lattice relief lit at 45°, 200° (256 px): the search stopped at 47.5°,
     # 207° with the albedo at its bound (height error 0.22); below it, the true light's well.
