@@ -82,6 +82,18 @@ def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path):
     assert shading["warnings"][0].startswith("light estimated")
 
 
+def test_inspect_puts_the_tolerance_beside_the_rms_it_bounds(asset):
+    # The tables' tolerance bounds the RMS error (and its 95 % bound), not the max: inspect
+    # used to print it after the max, which read as the max's tolerance.
+    import re
+
+    from haptex_compile.inspect_cli import summary
+
+    line = next(x for x in summary(str(asset)).splitlines() if "measured error" in x)
+    assert re.search(r"RMS [0-9.]+% \((95 % bound [0-9.]+%; )?tolerance on the RMS [0-9.]+%\), max [0-9.]+%, [0-9]+ samples$",
+                     line), line
+
+
 def test_compile_writes_a_valid_asset(asset):
     from haptex_compile.asset_validate import validate_asset
     from playback.asset import read_asset
