@@ -357,25 +357,20 @@ def _reduction_loss(img: np.ndarray, valid: np.ndarray, side: int, reduce=_downs
     return float(np.mean((v - back[valid]) ** 2) / var) if var > 0 else 0.0
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
-    """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
-    on `img` reduced to at most `side_px` pixels (cached per light).
+class _MisfitInputs(NamedTuple):
+    """The reduced image a light search's misfit is taken on (see :func:`_misfit_inputs`)."""
 
-    For each light the default solver fits a surface, with the exact reflectance on every
-    level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data energy
-    left (thin-plate term excluded); on a plain image (`periodic` False), outside a band of
-    ``PLAIN_MISFIT_BAND`` times each side along the edges. ``fit.at_bound`` is the albedo from
-    which a fit counts as held at that bound (``AT_BOUND_FRACTION`` of it).
-    ``fit.loosened(align_cos)`` is the same reduced image's misfit with the bound at
-    ``I_top / align_cos``; ``fit.looser`` is None, or such a misfit (set by
-    :func:`_refine_light`).
-    `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
-    (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
-    :func:`_refine_light` runs in worker processes; by default, one by one), and
-    ``fit.solve_light(slant, tilt)`` is one uncached solve.
-    """
-    from haptex_compile.shading_variational import energy, solve_variational
+    image: np.ndarray  # reduced intensities (float32)
+    weight: np.ndarray  # the solver's data weights (float32, 0 or 1)
+    misfit_weight: np.ndarray  # the misfit's weights (a plain image's edge band left out)
+    top: float  # 99.9th percentile of the reduced intensities (the albedo bound's base)
+    censored: dict  # the solver's "dark" and "bright" keyword arguments
 
+
+def _misfit_inputs(img, valid, censored, side_px, reduce=_downsample_to, periodic=True) -> _MisfitInputs:
+    """The reduced image of :func:`_misfit_function`: `img` reduced to at most `side_px`
+    pixels by `reduce`, its weights, the misfit's weights (on a plain image, outside a band of
+    ``PLAIN_MISFIT_BAND`` times each side), the top level and the censored pixels' weights."""
     # A reduced image, not a crop: a crop is not periodic, and with free edges grazing
     # lights fit as well (measured on 256 px bumps: slant 15° estimated as 38°). Averaging
     # changes the shading of rough surfaces, though (Brownian tiles of 256 px: see the
@@ -398,6 +393,29 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         w_misfit[br:w.shape[0] - br, bc:w.shape[1] - bc] = w[br:w.shape[0] - br, bc:w.shape[1] - bc]
         if w_misfit.sum() < 0.25 * w.sum():
             w_misfit = w  # a mask that leaves little data inside the band: keep it all
+    return _MisfitInputs(small, w, w_misfit, top, cens)
+
+
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
+    """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
+    on `img` reduced to at most `side_px` pixels (cached per light).
+
+    For each light the default solver fits a surface, with the exact reflectance on every
+    level and the albedo bounded above by ``I_top / ALIGN_COS``; the misfit is the data energy
+    left (thin-plate term excluded); on a plain image (`periodic` False), outside a band of
+    ``PLAIN_MISFIT_BAND`` times each side along the edges (:func:`_misfit_inputs`).
+    ``fit.at_bound`` is the albedo from which a fit counts as held at that bound
+    (``AT_BOUND_FRACTION`` of it). ``fit.loosened(align_cos)`` is the same reduced image's
+    misfit with the bound at ``I_top / align_cos``; ``fit.looser`` is None, or such a misfit
+    (set by :func:`_refine_light`).
+    `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
+    (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
+    :func:`_refine_light` runs in worker processes; by default, one by one), and
+    ``fit.solve_light(slant, tilt)`` is one uncached solve.
+    """
+    from haptex_compile.shading_variational import energy, solve_variational
+
+    small, w, w_misfit, top, cens = _misfit_inputs(img, valid, censored, side_px, reduce, periodic)
 
     def key_of(s, t):
         # A light's cache key (slant clipped to the searched range), and that slant.
