@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import subprocess
 import sys
 import time
@@ -1233,8 +1234,10 @@ def _surface_timing_rows(n: int, repeats: int) -> list[str]:
     """Seconds per megapixel (best of `repeats`) and height error of the default solver on
     each surface of side `n` at the first four ``LIGHTS``, light given: as a tile, as a tile
     without ``DEFAULT_SOLVER``'s large-level cap, and as a plain image; then the slowest of
-    each and the summed times' ratio."""
+    each, the summed times' ratio and the host's load average at the start and end (these
+    are wall-clock times: other work on the host slows them)."""
     rows, slowest, totals = [], [0.0, 0.0, 0.0], [0.0, 0.0]
+    load_start = os.getloadavg()[0]
     for name, truth, light, images in _timing_cases(_surfaces(n)):
         slant, tilt = light.slant_deg, light.tilt_deg
         cells = []
@@ -1249,7 +1252,9 @@ def _surface_timing_rows(n: int, repeats: int) -> list[str]:
         rows.append(f"| {name} | {slant:g}, {tilt:g} | " + " | ".join(cells) + " |")
     rows += ["", f"Slowest: tile {slowest[0]:.2f} s per megapixel (without the cap {slowest[1]:.2f}),"
              f" plain image {slowest[2]:.2f}; the tiles' summed time with the cap over without it:"
-             f" {totals[0] / totals[1]:.2f}."]
+             f" {totals[0] / totals[1]:.2f}. The host's load average (1 min) at the start and end of these"
+             f" timings: {load_start:.1f}, {os.getloadavg()[0]:.1f} (on {os.cpu_count()} CPUs; the solver"
+             " itself keeps about 1.3 of 2 busy, and other work on the host shows above that)."]
     return rows
 
 
