@@ -396,7 +396,8 @@ def _misfit_inputs(img, valid, censored, side_px, reduce=_downsample_to, periodi
     return _MisfitInputs(small, w, w_misfit, top, cens)
 
 
-def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True):
+def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, periodic=True,
+                     looser_cos: float | None = None):
     """The light search's misfit: a function ``fit(slant_deg, tilt_deg) -> (misfit, albedo)``
     on `img` reduced to at most `side_px` pixels (cached per light).
 
@@ -405,9 +406,8 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
     left (thin-plate term excluded); on a plain image (`periodic` False), outside a band of
     ``PLAIN_MISFIT_BAND`` times each side along the edges (:func:`_misfit_inputs`).
     ``fit.at_bound`` is the albedo from which a fit counts as held at that bound
-    (``AT_BOUND_FRACTION`` of it). ``fit.loosened(align_cos)`` is the same reduced image's
-    misfit with the bound at ``I_top / align_cos``; ``fit.looser`` is None, or such a misfit
-    (set by :func:`_refine_light`).
+    (``AT_BOUND_FRACTION`` of it). ``fit.looser`` is the same reduced image's misfit with the
+    bound at ``I_top / looser_cos`` (its own ``looser`` None), or None without `looser_cos`.
     `censored` is :func:`_censored_pixels` of the image. ``fit.prefetch(lights)`` solves the
     (slant, tilt) pairs not cached yet at once, with ``fit.map_`` (a map over them that
     :func:`_refine_light` runs in worker processes; by default, one by one), and
@@ -422,7 +422,7 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
         s = float(np.clip(s, MIN_SLANT_DEG, 85.0))
         return (round(s, 3), round(float(t) % 360.0, 3)), s
 
-    def build(align_cos: float):
+    def build(align_cos: float, looser_cos: float | None = None):
         # A misfit on the reduced image above, the albedo bounded by top / align_cos.
         cache: dict[tuple[float, float], tuple[float, float]] = {}
 
@@ -453,13 +453,12 @@ def _misfit_function(img, valid, censored, side_px, reduce=_downsample_to, perio
                 cache.update(zip(todo, fit.map_(list(todo.values()))))
 
         fit.at_bound = AT_BOUND_FRACTION * top / align_cos
-        fit.looser = None
+        fit.looser = None if looser_cos is None else build(looser_cos)
         fit.solve_light, fit.prefetch = solve_light, prefetch
         fit.map_ = lambda lights: [solve_light(s, t) for s, t in lights]
-        fit.loosened = build
         return fit
 
-    return build(ALIGN_COS)
+    return build(ALIGN_COS, looser_cos)
 
 
 def light_misfit(image, light: Light, *, mask=None, periodic: bool = True) -> tuple[float, bool]:
@@ -607,17 +606,16 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
         2.7 -> 5.7 and 1.8 -> 4.6 s); the 512 px plain weave 13.1 -> 16.3 s.
     """
     coarse = _misfit_function(img, valid, censored, side, periodic=periodic)
-    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic)
+    # Each final stage also has its misfit under the looser albedo bound, for a steep flagged
+    # estimate (the same reduced image).
+    final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic,
+                             looser_cos=STEEP_ALIGN_COS)
     full = None
     if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
-        full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic)
+        full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic,
+                                looser_cos=STEEP_ALIGN_COS)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS
     stages = [f for f in (final, full) if f is not None]
-    if STEEP_ALIGN_COS is not None:
-        # Each final stage's misfit under the looser albedo bound, for a steep flagged estimate
-        # (the same reduced image).
-        for f in stages:
-            f.looser = f.loosened(STEEP_ALIGN_COS)
     # The candidate lights of each step of the search are solved side by side (forked_map).
     fits = (coarse, *stages, *(f.looser for f in stages if f.looser is not None))
     with forked_map(lambda k, s, t: fits[k].solve_light(s, t), SEARCH_PROCESSES) as map_:
