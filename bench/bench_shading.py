@@ -1016,8 +1016,9 @@ def run(quick: bool = False) -> str:
               "| --- | --- | --- | --- | --- | --- |", *minimum_rows, "", minimum_summary + "."]
     lines += ["", f"The same for the plain weave's crop ({n - n // 8} px of its periodic rendering, the plain-image"
               " table's 'on the crop' column), light given. Here the minimum nearest the truth meets the"
-              " target where the default does not, and the default's energy is above it: the energy puts"
-              " the best heights near the truth, and the default's pyramid stops in another minimum"
+              " target at every light (the default misses it at 15° and 30°), and the default's energy is"
+              " above the minimum's: the energy puts the best heights near the truth, and the default's"
+              " pyramid stops in another minimum"
               " (at 15°, its error lies within about 15 px of the edges, most at the edge facing away"
               " from the light, and was there from the quarter-resolution level on):", "",
               "| slant, tilt (°) | default: error | energy ratio | minimum: error | rounds (gain) | prior kept |",
