@@ -18,6 +18,7 @@ report says why.
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,14 @@ from haptex_compile.surface import Surface
 
 LOG = logging.getLogger("haptex.photo")
 DEFAULT_RELIEF_RMS_UM = 10.0  # RMS height of a photo's relief when nothing else gives a scale
+
+
+def _log_stage(spec: str, what: str, t0: float) -> float:
+    """Log (INFO, shown with -v) that stage `what` of `spec` took since `t0`; returns now.
+    Only the log has the times: the asset stays byte-identical from run to run."""
+    now = time.perf_counter()
+    LOG.info("%s: %s in %.1f s", spec, what, now - t0)
+    return now
 
 
 def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_size_um: float,
@@ -194,6 +203,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     from haptex_compile.tiles import average_tile, flatten_illumination, paint_tile, periodic_window
 
     ny, nx = grey.shape
+    t0 = time.perf_counter()
     flat = flatten_illumination(grey, sigma_px=max(ny, nx) / 8.0)
     lattice = find_lattice(flat, seed=options.seed)
     report["lattice"] = {"periodic": lattice.periodic, "confidence": float(lattice.confidence), "reason": lattice.reason}
@@ -211,6 +221,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},
                             source_image=grey)
     region = coherent_region(grey, flat, lattice, seed=options.seed)
+    t0 = _log_stage(spec, "lattice and averaged tile", t0)
     (x0, y0, ny, nx), lattice, flat, tile, explained = region["box"], region["lattice"], region["flat"], region["tile"], region["explained"]
     report["lattice"]["tile_explained_variance"] = explained
     if (ny, nx) != grey.shape:
@@ -245,8 +256,10 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     light_on = None
     light_notes = []
     if light is None:
+        t0 = time.perf_counter()
         light, light_on = _light_from_small_window(tile.tile, lattice.basis_px)
         if light is not None:
+            _log_stage(spec, f"light estimated on {light_on}", t0)
             light_notes.append(estimated_light_note(light, on=light_on))
             LOG.warning("%s: %s", spec, light_notes[-1])
         else:
@@ -254,8 +267,10 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
             # 17-58 s on bench_photo's 1 Mpx photos.
             LOG.info("%s: no small periodic window: estimating the light on %s (up to a minute;"
                      " --light skips it)", spec, solved_on)
+    t0 = time.perf_counter()
     sfs = shape_from_shading(image, pixel_size_um=pixel_size_um, light=light, method=options.sfs, periodic=window is not None,
                              weave_basis_px=basis)
+    _log_stage(spec, f"heights from shading on {solved_on}" + ("" if light is not None else ", light estimated there"), t0)
     for w in sfs.warnings:
         LOG.warning("%s: %s", spec, w)
     visibility, weave_tilt = weave_visibility(sfs.light, basis)

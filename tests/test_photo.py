@@ -8,6 +8,7 @@ the relief up to the affine freedom shading leaves.
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -263,3 +264,19 @@ def test_light_nearly_along_the_weave_is_warned_and_solved_from_full_resolution_
             assert tilt_axis_difference_deg(shading["weave_direction_tilt_deg"], 0.0) < 0.5
         height = heights_at_image_px(result, x.ravel(), y.ravel())
         assert normalised_height_error(height, truth[y, x].ravel()) < (0.1 if warned else 0.05)
+
+
+def test_the_pipeline_logs_each_stage_time_for_verbose_runs_and_keeps_it_out_of_the_report(caplog):
+    # haptex-compile -v shows where a photo's time goes; the report (stored in the asset) must
+    # not hold wall-clock times, or assets would differ from run to run.
+    t1, t2, light = (21.0, 0.0), (0.0, 16.5), (30, 200)
+    image = render_lambertian(lattice_relief((256, 256), t1, t2, amplitude_um=12.0), PIXEL_UM, Light(*light), 0.8)
+    options = SourceOptions(light=light, roughness="none", relief_um=5.0)
+    with caplog.at_level(logging.INFO, logger="haptex.photo"):
+        result = photo_surface(image, PIXEL_UM, options, "timed", {})
+    stages = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert any(m.startswith("timed: lattice and averaged tile in ") and m.endswith(" s") for m in stages), stages
+    solved_on = result.report["shading"]["solved_on"]
+    assert any(m.startswith(f"timed: heights from shading on {solved_on} in ") for m in stages), stages
+    assert not any("estimated" in m for m in stages)  # the light was given: no search, none logged
+    assert not re.search(r"\bin \d+\.\d s\b", repr(result.report))  # no time in the report
