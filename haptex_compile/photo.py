@@ -32,12 +32,10 @@ LOG = logging.getLogger("haptex.photo")
 DEFAULT_RELIEF_RMS_UM = 10.0  # RMS height of a photo's relief when nothing else gives a scale
 
 
-def _log_stage(spec: str, what: str, t0: float) -> float:
-    """Log (INFO, shown with -v) that stage `what` of `spec` took since `t0`; returns now.
+def _log_stage(spec: str, what: str, t0: float) -> None:
+    """Log (INFO, shown with -v) that stage `what` of `spec` took since `t0` (perf_counter).
     Only the log has the times: the asset stays byte-identical from run to run."""
-    now = time.perf_counter()
-    LOG.info("%s: %s in %.1f s", spec, what, now - t0)
-    return now
+    LOG.info("%s: %s in %.1f s", spec, what, time.perf_counter() - t0)
 
 
 def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_size_um: float,
@@ -221,7 +219,7 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},
                             source_image=grey)
     region = coherent_region(grey, flat, lattice, seed=options.seed)
-    t0 = _log_stage(spec, "lattice and averaged tile", t0)
+    _log_stage(spec, "lattice and averaged tile", t0)
     (x0, y0, ny, nx), lattice, flat, tile, explained = region["box"], region["lattice"], region["flat"], region["tile"], region["explained"]
     report["lattice"]["tile_explained_variance"] = explained
     if (ny, nx) != grey.shape:
