@@ -266,9 +266,10 @@ def test_light_nearly_along_the_weave_is_warned_and_solved_from_full_resolution_
         assert normalised_height_error(height, truth[y, x].ravel()) < (0.1 if warned else 0.05)
 
 
-def test_the_pipeline_logs_each_stage_time_for_verbose_runs_and_keeps_it_out_of_the_report(caplog):
+def test_the_pipeline_logs_each_stage_time_for_verbose_runs_and_keeps_it_out_of_the_report(caplog, monkeypatch):
     # haptex-compile -v shows where a photo's time goes; the report (stored in the asset) must
     # not hold wall-clock times, or assets would differ from run to run.
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
     t1, t2, light = (21.0, 0.0), (0.0, 16.5), (30, 200)
     image = render_lambertian(lattice_relief((256, 256), t1, t2, amplitude_um=12.0), PIXEL_UM, Light(*light), 0.8)
     options = SourceOptions(light=light, roughness="none", relief_um=5.0)
