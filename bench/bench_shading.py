@@ -749,9 +749,7 @@ def _plain_minimum(img: np.ndarray, truth: np.ndarray, light: Light) -> dict:
     flat-on-average prior (the energy compared includes it)."""
     albedo = _moment_albedo(img[valid_pixels(img)], light.slant_deg)
     dom_img, weight, kwargs = _domain_inputs(img, False, light, albedo)
-    low = ({"smooth_lam_growth": shading.LOW_SLANT_LAM_GROWTH, "mid_cg": shading.LOW_SLANT_MID_CG}
-           if light.slant_deg <= shading.LOW_SLANT_MAX_DEG else {})
-    settings = {**DEFAULT_SOLVER, **shading.PLAIN_SOLVER, **low, **kwargs}
+    settings = {**shading._solver_settings("default", False, light.slant_deg, False), **kwargs}
     z, a = solve_variational(dom_img, weight, light.vector, albedo, **settings)
     height = shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=False).height
     rows, cols = img.shape

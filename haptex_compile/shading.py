@@ -677,20 +677,7 @@ def shape_from_shading(
     dom_img, dom_w, domain_kwargs = _solve_domain(img, valid, censored, periodic, light, albedo, top)
     if z0 is None and light.slant_deg < MIN_SLANT_DEG:
         z0 = _brightness_start(dom_img, dom_w, albedo, np.cos(np.deg2rad(light.slant_deg)))
-    kwargs = {}
-    if z0 is not None:
-        # Do not coarsen the start away (from a flat height, overhead light has no Jacobian),
-        # and take few steps: the problem has no unique answer, the start is the prior.
-        kwargs.update(min_size=24, coarse_gn=6, mid_gn=3, fine_gn=2, coarse_cg=30, fine_cg=10)
-    if method == "accurate":
-        kwargs.update(ACCURATE_SOLVER)
-    elif z0 is None:
-        kwargs.update(DEFAULT_SOLVER if periodic else {**DEFAULT_SOLVER, **PLAIN_SOLVER})
-    if z0 is None and light.slant_deg <= LOW_SLANT_MAX_DEG:
-        kwargs.update(smooth_lam_growth=LOW_SLANT_LAM_GROWTH)
-        if method != "accurate":
-            kwargs.update(mid_cg=LOW_SLANT_MID_CG)
-    kwargs.update(domain_kwargs)
+    kwargs = {**_solver_settings(method, periodic, light.slant_deg, z0 is not None), **domain_kwargs}
     albedo_start = albedo
     weight = dom_w.astype(np.float32)
     z, albedo = solve_variational(dom_img, weight, light.vector, albedo, z0=z0, **kwargs)
@@ -722,6 +709,27 @@ def shape_from_shading(
         used_method = f"{used_method}+flat-fallback"
     height = (z - z.mean()) * pixel_size_um
     return SfsResult(height, light, float(albedo), used_method, tuple(warnings))
+
+
+def _solver_settings(method: str, periodic: bool, slant_deg: float, start_given: bool) -> dict:
+    """The keyword arguments of :func:`~haptex_compile.shading_variational.solve_variational`
+    that :func:`shape_from_shading` passes for `method` ("default" or "accurate"), a tile or
+    a plain image, the light's slant and whether a start height is given (the domain's own
+    arguments are added by the caller)."""
+    kwargs: dict = {}
+    if start_given:
+        # Do not coarsen the start away (from a flat height, overhead light has no Jacobian),
+        # and take few steps: the problem has no unique answer, the start is the prior.
+        kwargs.update(min_size=24, coarse_gn=6, mid_gn=3, fine_gn=2, coarse_cg=30, fine_cg=10)
+    if method == "accurate":
+        kwargs.update(ACCURATE_SOLVER)
+    elif not start_given:
+        kwargs.update(DEFAULT_SOLVER if periodic else {**DEFAULT_SOLVER, **PLAIN_SOLVER})
+    if not start_given and slant_deg <= LOW_SLANT_MAX_DEG:
+        kwargs.update(smooth_lam_growth=LOW_SLANT_LAM_GROWTH)
+        if method != "accurate":
+            kwargs.update(mid_cg=LOW_SLANT_MID_CG)
+    return kwargs
 
 # --------------------------------------------------------------------------------------------
 # Physical scale
