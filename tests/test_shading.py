@@ -1826,6 +1826,25 @@ def test_light_below_the_plateau_is_found_on_a_lattice_relief():
     assert e_found <= e_given + 0.02
 
 
+def test_the_well_below_the_plateau_is_also_searched_from_the_plateaus_tilt(monkeypatch):
+    # A plain weave's periodic window (4 x 4 cells of 21 x 16.5 px, as the photo pipeline
+    # paints) lit at 30°, 200°: the image statistics give 26.4°, 205.8°, the search ends on
+    # the plateau (45.5°, 205.3°, flagged). At 26.4° the true light's well does not show, and
+    # the 180° tilt scan there picks a tilt near the weave's axis, 186°, whose search below
+    # the plateau stops in a side well (28.5°, 186°: 14° of tilt off); the plateau's own tilt
+    # leads to the true light's well.
+    from haptex_compile.synth_images import weave_image
+
+    truth = Light(30.0, 200.0)
+    img = render_lambertian(40.0 * weave_image((66, 84), (21.0, 0.0), (0.0, 16.5), kind="plain"), 20.0, truth, 0.8)
+    est, _ = estimate_light(img)
+    assert est.albedo_at_bound  # still flagged: the plateau fits as well
+    _assert_near(est, truth)
+    monkeypatch.setattr(shading_light, "PLATEAU_TILT_START", False)
+    scan_only, _ = estimate_light(img)
+    assert tilt_axis_difference_deg(scan_only.tilt_deg, truth.tilt_deg) > 10.0
+
+
 def _bowl_misfit(centre, depth, width_deg, plateau=1.0, bound_above=None):
     """A misfit function as the light search's: a well of `depth` at light `centre` (slant,
     tilt) within `width_deg`, `plateau` elsewhere, the albedo at its bound (2.0 against 1.0)
