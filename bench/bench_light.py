@@ -73,7 +73,7 @@ def _truth_basin_misfit(img, truth, light: Light) -> float:
     side = shading_light.FINAL_SIDE_PX
     m = shading_light._misfit_inputs(img, valid_pixels(img), _censored_pixels(img), side,
                                      shading_light._block_average, periodic=False)
-    factor = max(1, int(np.ceil(max(img.shape) / side)))  # the block side (pixels per reduced pixel)
+    factor = shading_light._block_side(img.shape, side)  # pixels per reduced pixel
     z = shading_light._block_average(truth / PIXEL_UM, np.ones(truth.shape, bool), side)[0] / factor
     z, albedo = z - z.mean(), m.top
     for _ in range(TRUTH_ROUNDS):

@@ -156,6 +156,12 @@ def _downsample_to(img: np.ndarray, valid: np.ndarray, side: int):
     return _normalised(wi, cv2.resize(w, size, interpolation=cv2.INTER_AREA))
 
 
+def _block_side(shape: tuple[int, int], side: int) -> int:
+    """The block side of :func:`_block_average`: the smallest integer f that brings the larger
+    of `shape`'s sides to at most `side` pixels (1: no averaging)."""
+    return max(1, int(np.ceil(max(shape) / side)))
+
+
 def _block_average(img: np.ndarray, valid: np.ndarray, side: int):
     """Average image and weights over f x f blocks, f the smallest integer that brings the
     larger side to at most `side` pixels (edges wrap to fill the last blocks).
@@ -168,7 +174,7 @@ def _block_average(img: np.ndarray, valid: np.ndarray, side: int):
     bench's plain weave lost its 60° estimate, 60° -> 66°.)
     """
     rows, cols = img.shape
-    f = int(np.ceil(max(rows, cols) / side))
+    f = _block_side(img.shape, side)
     if f <= 1:
         return img.astype(np.float32), valid.astype(np.float32)
     pad = ((0, (-rows) % f), (0, (-cols) % f))
