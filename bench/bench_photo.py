@@ -180,7 +180,7 @@ def _weave_direction_rows(quick: bool) -> str:
     rows = ["Light near a weave direction (given): plain weaves and smooth cells lit at these angles off one of the"
             " lattice's directions; normalised height error over every other pixel, w = warned (`shading.weave_visibility`,"
             f" sin(slant) x sin(angle to t1, t2, t1 + t2 or t1 - t2) below {WEAVE_VISIBILITY_MIN:g}: those are also solved"
-            " from 2-3 more starts at full resolution on a small periodic window of the lattice, polished on the"
+            " from 3-4 more starts at full resolution on a small periodic window of the lattice, polished on the"
             " surface's window, `shading_starts._start_from_cell`). The profiles across a direction"
             " the light runs along have no slope along it, and the shading sees them only at second order:", "",
             "| relief | lattice t1; t2 (px) | along | slant (°) | " + " | ".join(f"{o:g}°" for o in OFFSETS_DEG) + " |",

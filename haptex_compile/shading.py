@@ -647,7 +647,7 @@ def shape_from_shading(
                 where = (f"light (slant {light.slant_deg:.1f}°, tilt {light.tilt_deg:.1f}°) nearly along the weave"
                          f" direction at tilt {round(weave_tilt, 1) % 180.0:.1f}° (sin(slant) x sin(angle between"
                          f" them) {visibility:.3f} < {visibility_min:g})")
-            how = ("solved from 2-3 more starts" if periodic
+            how = ("solved from 3-4 more starts" if periodic
                    else "not a periodic tile, so solved from the pyramid alone")
             warnings.append(
                 f"{where}: the yarns' cross-sections barely shade and may come back wrong ({how}); light"
@@ -665,7 +665,7 @@ def shape_from_shading(
         warnings.append(
             f"light tilt {light.tilt_deg:.1f}° within {shading_starts.ALIGNED_TILT_DEG:g}° of the periodic"
             f" tile's {aligned[0]} ({aligned[1]:.1f}°): the tile-sized waves across the light barely"
-            " shade and the heights may be far off (solved from 3 starts); light the fabric at least"
+            " shade and the heights may be far off (solved from 4 starts); light the fabric at least"
             f" {shading_starts.ALIGNED_TILT_DEG:g}° away from its weave's axes and diagonals"
         )
     if light.slant_deg >= GRAZING_DEG:

@@ -121,10 +121,25 @@ FINE_START_GN = 30
 FINE_START_CG = 20
 FINE_START_RTOL = 1e-5
 FINE_START_LAMS = (1e-3, 1e-4)
+# A second continuation starts smoother (see _continuation_start): near a weave direction the
+# energy has several minima close in value, and the one a continuation ends in depends on where
+# it starts. Measured with bench/bench_photo.py's table of lights near a weave direction (72
+# cases, light given), this added to the starts against without it: the plain weave on the
+# 16 px square lattice lit along x at 15° 0.585 -> 0.021, 30° off x at 15° 0.130 -> 0.021,
+# 3° off x at 30° 0.655 -> 0.033, the oblique lattice's plain weave 3° off t2 at 30° 0.759 ->
+# 0.018; the other 68 within 0.002; errors above 0.1: 7 of 54 warned -> 3 (0.106, 0.135,
+# 0.263). In their place (one continuation, from 1e-2) it lost a case: the oblique weave 3° off
+# t1 at 45° 0.056 -> 0.722, a minimum of lower energy on the small window. Bare tiles lit along
+# their axes and diagonals (bench_shading, 256 px, slants 30-60°): summed error of the 24
+# warned lights 1.256 -> 1.030 (random bumps along x at 45° 0.222 -> 0.049, the plain weave
+# along x at 30° and 45° 0.030 / 0.028 -> 0.008; Brownian along the diagonal at 30° 0.058 ->
+# 0.076), the sphere cap along the diagonal at 60° still 0.46; that table's solves 13.2 ->
+# 20.8 s.
+FINE_START_SMOOTH_LAMS = (1e-2, 1e-3, 1e-4)
 
 
 def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict) -> list:
-    """Two or three solves (z, albedo) at full resolution only, from flat starts; the caller
+    """Three or four solves (z, albedo) at full resolution only, from flat starts; the caller
     keeps the one of lowest energy (:func:`_lowest_energy`).
 
     A coarse level of a lattice relief lit nearly along a weave direction under-resolves the
@@ -136,7 +151,8 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     no slope at all along the light (light along the domain's axes or diagonals) negated,
     since the shading sees them only at second order, where a ridge and a groove look alike;
     and flat with the thin-plate weight stepped down through ``FINE_START_LAMS`` (smooth
-    shapes first). Measured (plain weaves and smooth cells in 208 px periodic windows of a
+    shapes first), and again from a smoother start through ``FINE_START_SMOOTH_LAMS`` (added
+    later: measured there). Measured (plain weaves and smooth cells in 208 px periodic windows of a
     square and an oblique lattice, slants 30-60°, 0-12° off a weave direction, light given):
     summed height errors 8.6 -> 3.1 and 9.6 -> 5.9; at 1° off, where no start finds the
     truth's basin, the energy can pick worse (0.475 -> 0.990 once). On bench/bench_photo.py's
@@ -146,13 +162,13 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
     than 0.03. Cost: up to 2 x ``FINE_START_GN`` steps at full resolution (3 x when the light
     runs along the domain's axes or diagonals): on a plain weave tile of 1024 px lit 3° off
     its yarns, 12-13 s instead of 0.6 s. A weave's tile runs them on a small window of its
-    lattice instead (:func:`_start_from_cell`). The two chains (flat, then its unseen waves
-    negated; the continuation) run side by side in worker processes, as do
+    lattice instead (:func:`_start_from_cell`). The chains (flat, then its unseen waves
+    negated; each continuation) run side by side in worker processes, as do
     :func:`_held_starts`' two solves (``SEARCH_PROCESSES``; the same heights): measured on 2
     cores, bench tiles of 256 px lit along their axes and diagonals (three surfaces, three
     lights, and a lattice along a weave direction) 12.5 -> 8.7 s in all, random bumps of
     512 px and 1024 px lit along x 5.7 -> 4.1 s and 17.1 -> 15.8 s. A tile with no lattice
-    given runs the continuation and one held pyramid start instead (:func:`_bare_tile_starts`).
+    given runs the continuations and one held pyramid start instead (:func:`_bare_tile_starts`).
     """
     def flat_and_negated():
         zf, af = _full_resolution_solve(img, weight, light, albedo0, domain_kwargs)
@@ -160,10 +176,13 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
         return [(zf, af)] + ([] if invisible is None else
                              [_full_resolution_solve(img, weight, light, af, domain_kwargs, zf - 2.0 * invisible)])
 
-    # The two chains are independent: side by side.
-    first, second = _side_by_side(flat_and_negated,
-                                  lambda: [_continuation_start(img, weight, light, albedo0, domain_kwargs)])
-    return first + second
+    def continuation(lams):
+        return [_continuation_start(img, weight, light, albedo0, domain_kwargs, lams)]
+
+    # The chains are independent: side by side.
+    chains = _side_by_side(flat_and_negated, *(functools.partial(continuation, lams)
+                                               for lams in (FINE_START_LAMS, FINE_START_SMOOTH_LAMS)))
+    return [start for chain in chains for start in chain]
 
 
 def _full_resolution_solve(img, weight, light: Light, albedo0: float, domain_kwargs: dict, z_start=None,
@@ -176,24 +195,27 @@ def _full_resolution_solve(img, weight, light: Light, albedo0: float, domain_kwa
                              fine_cg=FINE_START_CG, gn_rtol=FINE_START_RTOL, **thin_plate, **domain_kwargs)
 
 
-def _continuation_start(img, weight, light: Light, albedo0: float, domain_kwargs: dict):
-    """The continuation of :func:`_fine_starts`: from flat at full resolution, with the thin
-    plate's weight stepped down through ``FINE_START_LAMS`` (smooth shapes first); (z, albedo)."""
+def _continuation_start(img, weight, light: Light, albedo0: float, domain_kwargs: dict,
+                        lams: tuple[float, ...]):
+    """A continuation of :func:`_fine_starts`: from flat at full resolution, with the thin
+    plate's weight stepped down through `lams` (smooth shapes first; ``FINE_START_GN`` steps
+    shared between them); (z, albedo)."""
     zc, ac = None, albedo0
-    for lam in FINE_START_LAMS:
-        zc, ac = _full_resolution_solve(img, weight, light, ac, domain_kwargs, zc,
-                                        FINE_START_GN // len(FINE_START_LAMS), lam=lam)
+    for lam in lams:
+        zc, ac = _full_resolution_solve(img, weight, light, ac, domain_kwargs, zc, FINE_START_GN // len(lams), lam=lam)
     return zc, ac
 
 
 def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, domain_kwargs: dict) -> list:
     """The starts of a tile with no lattice given, lit along its axis or diagonal: the pyramid
     with the waves that have no slope along the light held from level ``BARE_TILE_HELD_LEVEL``
-    on (`kwargs`: the main solve's settings), and the continuation at full resolution
-    (:func:`_continuation_start`), side by side; the caller keeps the lowest energy.
+    on (`kwargs`: the main solve's settings), and the two continuations at full resolution
+    (:func:`_continuation_start` through ``FINE_START_LAMS`` and ``FINE_START_SMOOTH_LAMS``),
+    side by side; the caller keeps the lowest energy.
 
-    Of the starts a weave's tile runs (:func:`_held_starts`, :func:`_fine_starts`), these
-    two are the ones that were kept: measured at 256, 512 and 1024 px (the bench's four
+    Of the starts a weave's tile runs (:func:`_held_starts`, :func:`_fine_starts`), the held
+    start and the first continuation are the ones that were kept (the smoother continuation
+    was added later, see ``FINE_START_SMOOTH_LAMS``): measured at 256, 512 and 1024 px (the bench's four
     surfaces and random bumps of seeds 5 and 9, only 5 at 1024 px; slants 30°, 45° and 60°, light
     along x and along the diagonal: 36, 36 and 30 cases), the lowest energy was the
     continuation's in 24, 22 and 12 cases, the plain pyramid's in 7, 10 and 11, the start held
@@ -208,7 +230,8 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
     at 1024 px (means, one run each).
     """
     return _side_by_side(lambda: _held_start(img, weight, light, albedo0, kwargs, BARE_TILE_HELD_LEVEL),
-                         lambda: _continuation_start(img, weight, light, albedo0, domain_kwargs))
+                         *(functools.partial(_continuation_start, img, weight, light, albedo0, domain_kwargs, lams)
+                           for lams in (FINE_START_LAMS, FINE_START_SMOOTH_LAMS)))
 
 
 # The full-resolution starts of a weave's tile run on a small periodic window of its lattice
