@@ -1195,10 +1195,10 @@ def run(quick: bool = False) -> str:
               "| | default malloc | the solver's policy | ratio |", "| --- | --- | --- | --- |",
               *_malloc_policy_rows(tn, repeats=1 if quick else 2)]
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
-              " pyramid, the pyramid holding the waves across the light from level 2, and the"
-              " full-resolution continuation, the lowest energy kept: `shading_starts._bare_tile_starts`)"
+              " pyramid, the pyramid holding the waves across the light from level 2, and the two"
+              " full-resolution continuations, the lowest energy kept: `shading_starts._bare_tile_starts`)"
               " and 3° off it (the pyramid alone), random bumps (seed 5), light given, one run"
-              " each: seconds per megapixel and normalised height error. The continuation costs"
+              " each: seconds per megapixel and normalised height error. Each continuation costs"
               " about the same per pixel at every size, 30 Gauss-Newton steps of 20 CG iterations;"
               " a weave's tile runs its full-resolution starts on a small window of its lattice"
               " instead (the photo pipeline), a tile with no lattice given cannot:", "",
