@@ -1343,10 +1343,9 @@ def test_weave_starts_run_on_a_small_window_of_the_lattice_and_keep_its_shadows(
 def test_a_smoother_continuation_finds_a_weave_lit_near_overhead(monkeypatch):
     # A plain weave on a 16 px square lattice lit at 15°, 30° off its yarns: warned (15° off
     # the diagonal t1 + t2: sin 15° sin 15° = 0.067), and the energy has several minima close
-    # in value. The continuation from
-    # a thin plate of weight 1e-2 (FINE_START_SMOOTH_LAMS) reaches the truth's; without it the
-    # starts end in another (measured: 0.044 against 0.158 at 128 px; 0.039 against 0.153 at
-    # 256 px).
+    # in value. The continuation from a thin plate of weight 1e-2 (FINE_START_SMOOTH_LAMS)
+    # reaches the truth's; without it the starts end in another (measured: 0.044 against 0.158
+    # at 128 px; 0.039 against 0.153 at 256 px).
     from haptex_compile.synth_images import weave_image
 
     truth = 40.0 * weave_image((128, 128), (16.0, 0.0), (0.0, 16.0), kind="plain")
