@@ -31,8 +31,9 @@ ALIGNED_TILT_DEG = 3.0
 # direction 0, 3, 8, 12, 20, 30°): 54 lights below 0.15, 25 of them with height errors above
 # 0.1 from the pyramid alone (up to 0.76, plain weaves lit 3° off their yarns at 30°); 18 above
 # it, errors at most 0.105. Below it the solve adds starts at full resolution
-# (_fine_starts, on a small window of the lattice: _start_from_cell), which leaves 7
-# above 0.1 (up to 0.74); at slant 15° every tilt is below it on a square lattice.
+# (_fine_starts, on a small window of the lattice: _start_from_cell), which leaves 3
+# above 0.1 (0.106-0.263; 7, up to 0.74, before FINE_START_SMOOTH_LAMS); at slant 15° every
+# tilt is below it on a square lattice.
 WEAVE_VISIBILITY_MIN = 0.15
 
 
@@ -215,10 +216,10 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
 
     Of the starts a weave's tile runs (:func:`_held_starts`, :func:`_fine_starts`), the held
     start and the first continuation are the ones that were kept (the smoother continuation
-    was added later, see ``FINE_START_SMOOTH_LAMS``): measured at 256, 512 and 1024 px (the bench's four
-    surfaces and random bumps of seeds 5 and 9, only 5 at 1024 px; slants 30°, 45° and 60°, light
-    along x and along the diagonal: 36, 36 and 30 cases), the lowest energy was the
-    continuation's in 24, 22 and 12 cases, the plain pyramid's in 7, 10 and 11, the start held
+    was added later, see ``FINE_START_SMOOTH_LAMS``): measured at 256, 512 and 1024 px (the
+    bench's four surfaces and random bumps of seeds 5 and 9, only 5 at 1024 px; slants 30°,
+    45° and 60°, light along x and along the diagonal: 36, 36 and 30 cases), the lowest energy
+    was the continuation's in 24, 22 and 12 cases, the plain pyramid's in 7, 10 and 11, the start held
     from level 2 in 3, 4 and 6, and the flat start or its negation in 2, 0 and 1 (the plain
     weave along the diagonal at 45° and 60° at 256 px, the bumps of seed 5 along x at 60° at
     1024 px, where the continuation came within 0.1 % of their energy, with height errors
@@ -227,7 +228,10 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
     diagonal at 256 px, 12 at 512 and 1024 px): the same errors (to 0.001) but for the plain
     weave along the diagonal at 45° (256 px: 0.005 -> 0.006), and a solve takes 0.47 s
     instead of 0.94 s at 256 px, 1.8 s instead of 4.0 s at 512 px and 6.1 s instead of 15.9 s
-    at 1024 px (means, one run each).
+    at 1024 px (means, one run each). With the smoother continuation (the report at e41cea3),
+    random bumps lit along x at 45° took 9.6-10.4 s per megapixel at 256-1024 px, against
+    5.6-7.1 s in the previous report (the host about 20 % slower; at 256 px the error 0.330 ->
+    0.044).
     """
     return _side_by_side(lambda: _held_start(img, weight, light, albedo0, kwargs, BARE_TILE_HELD_LEVEL),
                          *(functools.partial(_continuation_start, img, weight, light, albedo0, domain_kwargs, lams)
