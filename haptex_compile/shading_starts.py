@@ -177,13 +177,9 @@ def _fine_starts(img, weight, light: Light, albedo0: float, domain_kwargs: dict)
         return [(zf, af)] + ([] if invisible is None else
                              [_full_resolution_solve(img, weight, light, af, domain_kwargs, zf - 2.0 * invisible)])
 
-    def continuation(lams):
-        return [_continuation_start(img, weight, light, albedo0, domain_kwargs, lams)]
-
     # The chains are independent: side by side.
-    chains = _side_by_side(flat_and_negated, *(functools.partial(continuation, lams)
-                                               for lams in (FINE_START_LAMS, FINE_START_SMOOTH_LAMS)))
-    return [start for chain in chains for start in chain]
+    first, *continued = _side_by_side(flat_and_negated, *_continuations(img, weight, light, albedo0, domain_kwargs))
+    return first + continued
 
 
 def _full_resolution_solve(img, weight, light: Light, albedo0: float, domain_kwargs: dict, z_start=None,
@@ -205,6 +201,13 @@ def _continuation_start(img, weight, light: Light, albedo0: float, domain_kwargs
     for lam in lams:
         zc, ac = _full_resolution_solve(img, weight, light, ac, domain_kwargs, zc, FINE_START_GN // len(lams), lam=lam)
     return zc, ac
+
+
+def _continuations(img, weight, light: Light, albedo0: float, domain_kwargs: dict) -> list:
+    """The zero-argument calls of :func:`_continuation_start`, one per schedule of the thin
+    plate's weight (``FINE_START_LAMS``, ``FINE_START_SMOOTH_LAMS``), to run side by side."""
+    return [functools.partial(_continuation_start, img, weight, light, albedo0, domain_kwargs, lams)
+            for lams in (FINE_START_LAMS, FINE_START_SMOOTH_LAMS)]
 
 
 def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, domain_kwargs: dict) -> list:
@@ -234,8 +237,7 @@ def _bare_tile_starts(img, weight, light: Light, albedo0: float, kwargs: dict, d
     0.044).
     """
     return _side_by_side(lambda: _held_start(img, weight, light, albedo0, kwargs, BARE_TILE_HELD_LEVEL),
-                         *(functools.partial(_continuation_start, img, weight, light, albedo0, domain_kwargs, lams)
-                           for lams in (FINE_START_LAMS, FINE_START_SMOOTH_LAMS)))
+                         *_continuations(img, weight, light, albedo0, domain_kwargs))
 
 
 # The full-resolution starts of a weave's tile run on a small periodic window of its lattice
