@@ -1189,6 +1189,16 @@ def run(quick: bool = False) -> str:
               " megapixel | error | plain image: s per megapixel | error |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |",
               *_surface_timing_rows(tn, repeats=1 if quick else 2)]
+    lines += ["", "Plain images (`periodic=False`) of the four surfaces at the first four lights, light given:"
+              " summed seconds (best of each solve's runs), the slowest in seconds per megapixel of the"
+              " image and the summed normalised height error; baseline (same run): their large levels"
+              " above the finest with the tiles' cap, 12 CG iterations a step"
+              " (`PLAIN_SOLVER['large_level_cap'] = DEFAULT_SOLVER['large_level_cap']`; the default 8):", "",
+              "| side (px) | default: summed s | slowest: s per megapixel | summed error | tiles' cap: summed s"
+              " | slowest: s per megapixel | summed error | time ratio |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |",
+              *_plain_timing_rows((tn,) if quick else (tn // 2, 3 * tn // 4, tn),
+                                  repeats=1 if quick else 2)]
     lines += ["", f"The same 16 solves at {tn} x {tn} px, light given, with glibc's default malloc and with"
               " the solver's (`haptex_compile.malloc_policy`: freed blocks kept for reuse rather than"
               " handed back and faulted in again in the next CG iteration), each in a fresh process:", "",
@@ -1255,6 +1265,26 @@ def _surface_timing_rows(n: int, repeats: int) -> list[str]:
              f" timings: {load_start:.1f}, {os.getloadavg()[0]:.1f} (on {os.cpu_count()} CPUs; these solves"
              " alone hold it near 1.7, their threads counted: measured 1.4 after 100 s of them from 0.1 on"
              " a quiet host; above that, other work shared the CPUs)."]
+    return rows
+
+
+def _plain_timing_rows(sides, repeats: int) -> list[str]:
+    """For each side: the 16 plain-image solves of :func:`_timing_cases` with the default and
+    with the tiles' large-level cap (the baseline), best of `repeats` each: summed seconds,
+    the slowest in seconds per megapixel, summed height error, and the time ratio."""
+    rows = []
+    variants = ({}, {"large_level_cap": DEFAULT_SOLVER["large_level_cap"]})
+    for n in sides:
+        total, slowest, error = np.zeros(2), np.zeros(2), np.zeros(2)
+        for _, truth, light, images in _timing_cases(_surfaces(n)):
+            for k, patch in enumerate(variants):
+                with mock.patch.dict(shading.PLAIN_SOLVER, patch):
+                    best, res = _best_solve(images[False], light, False, repeats)
+                total[k] += best
+                slowest[k] = max(slowest[k], best / (n * n / 1e6))
+                error[k] += normalised_height_error(res.height, truth)
+        rows.append(f"| {n} | " + " | ".join(f"{total[k]:.2f} | {slowest[k]:.2f} | {error[k]:.3f}" for k in range(2))
+                    + f" | {total[0] / total[1]:.2f} |")
     return rows
 
 

@@ -285,7 +285,20 @@ DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=3e-4, albedo_proje
 # edges of a plain image limit it first): the table 4.61 / 5.38 -> 4.59 / 5.36, bumps of
 # 1 Mpx 1.94-2.14 -> 1.66-1.68 s/Mpx (error 0.146 -> 0.134), a 960 px crop of the plain weave
 # the same errors (0.363, 0.123 at slants 15°, 45°).
-PLAIN_SOLVER = dict(gn_rtol=1e-3, fine_cg=6)
+# Their large levels above the finest (256 x 256 px or more: the half-resolution level of an
+# image of about 440 px or more, in its margin) take 8 CG iterations a step, not a tile's 12:
+# those levels took 38 % of the time, the finest 31 % (summed over plain images of 512 and
+# 768 px and 800 px crops, the bench's four surfaces at its four lights). Against the tiles'
+# 12 in the same run (bench_shading._plain_timing_rows, best of 2): 16 solves of 512 px
+# 5.70 -> 5.20 s, of 768 px 10.10 -> 9.23 s, summed errors 4.023 -> 4.031 and 4.029 ->
+# 4.027; of 1024 px 16.8 -> 15.8 s, 4.203 -> 4.184; with 800 px crops, of 48 solves none
+# worse by more than 0.04 (a Brownian crop at 60°, 0.656 -> 0.693; the plain weave at most
+# 0.007). Fewer steps there, fewer on the coarser levels or a looser gn_rtol trade error for
+# time along one line (summed errors of those 48 from 13.125: 6 steps 13.235, 5 steps 13.302,
+# gn_rtol 3e-3 as well 13.258, at most 10-20 % faster in single runs), as did 4 previous
+# steps joined (subspace_steps) with 5 steps (13.158); row threads on levels from 64 x 64 px
+# gained nothing.
+PLAIN_SOLVER = dict(gn_rtol=1e-3, fine_cg=6, large_level_cap=(256 * 256, 8, 8))
 # Method "accurate": more steps and iterations everywhere, converged solves, the albedo
 # projected on every level without sub-pixel roughness (Brownian surfaces, 7 seeds x 2 tilts
 # at 15°: mean a320 error -13 % -> -9 % with the ratio limit). Levels stop once a full step
