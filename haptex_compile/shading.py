@@ -285,8 +285,8 @@ DEFAULT_SOLVER = dict(mid_gn=8, mid_cg=20, fine_cg=9, gn_rtol=3e-4, albedo_proje
 # edges of a plain image limit it first): the table 4.61 / 5.38 -> 4.59 / 5.36, bumps of
 # 1 Mpx 1.94-2.14 -> 1.66-1.68 s/Mpx (error 0.146 -> 0.134), a 960 px crop of the plain weave
 # the same errors (0.363, 0.123 at slants 15°, 45°).
-# Their large levels above the finest (256 x 256 px or more: the half-resolution level of an
-# image of about 440 px or more, in its margin) take 8 CG iterations a step, not a tile's 12:
+# Their large levels above the finest (256 x 256 px or more: from about 440 px a side, the
+# half-resolution level of the image with its margin) take 8 CG iterations a step, not 12:
 # those levels took 38 % of the time, the finest 31 % (summed over plain images of 512 and
 # 768 px and 800 px crops, the bench's four surfaces at its four lights). Against the tiles'
 # 12 in the same run (bench_shading._plain_timing_rows, best of 2): 16 solves of 512 px
