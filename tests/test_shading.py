@@ -495,31 +495,42 @@ def test_large_levels_above_the_finest_take_capped_steps(bumps128, monkeypatch):
     assert levels == [(8, 20, 10), (16, 20, 10), (32, 2, 4), (64, 2, 4), (128, 3, 9)]
 
 
-def test_the_large_level_cap_keeps_a_512_px_tiles_heights(monkeypatch):
-    # The default caps the 256 px half-resolution level of a 512 px tile at 8 steps of 12 CG
-    # iterations (20 without): fewer iterations, the same heights within 0.005 of normalised
-    # error (measured on the bench's surfaces at 512 px: summed error 0.605 -> 0.610).
+def _capped_solves(monkeypatch, periodic: bool, level_shape: tuple[int, int], caps) -> tuple[dict, dict]:
+    """Random bumps (seed 2, 512 px, lit at 30°, 120°) solved as a tile or a plain image with
+    each of `caps` as the large-level cap (of ``DEFAULT_SOLVER``, or ``PLAIN_SOLVER`` for a
+    plain image): their normalised height errors and the sets of CG iteration limits of the
+    steps on the level of `level_shape`, both keyed by cap."""
     from haptex_compile import shading_variational as sv
 
     truth = ts.random_bumps((512, 512), PX, seed=2)
     light = Light(30.0, 120.0)
-    img = render_lambertian(truth, PX, light, 0.8, periodic=True)
+    img = render_lambertian(truth, PX, light, 0.8, periodic=periodic)
+    settings = shading.DEFAULT_SOLVER if periodic else shading.PLAIN_SOLVER
     counted = []
     gn_step = sv._Problem.gn_step
 
     def step(self, z, albedo, max_cg, *args, **kwargs):
-        if z.shape == (256, 256):
+        if z.shape == level_shape:
             counted.append(max_cg)
         return gn_step(self, z, albedo, max_cg, *args, **kwargs)
 
     monkeypatch.setattr(sv._Problem, "gn_step", step)
     errors, iterations = {}, {}
-    for cap in (None, shading.DEFAULT_SOLVER["large_level_cap"]):
+    for cap in caps:
         counted.clear()
-        monkeypatch.setitem(shading.DEFAULT_SOLVER, "large_level_cap", cap)
+        monkeypatch.setitem(settings, "large_level_cap", cap)
         errors[cap] = normalised_height_error(
-            shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True).height, truth)
+            shape_from_shading(img, pixel_size_um=PX, light=light, periodic=periodic).height, truth)
         iterations[cap] = set(counted)
+    return errors, iterations
+
+
+def test_the_large_level_cap_keeps_a_512_px_tiles_heights(monkeypatch):
+    # The default caps the 256 px half-resolution level of a 512 px tile at 8 steps of 12 CG
+    # iterations (20 without): fewer iterations, the same heights within 0.005 of normalised
+    # error (measured on the bench's surfaces at 512 px: summed error 0.605 -> 0.610).
+    cap = shading.DEFAULT_SOLVER["large_level_cap"]
+    errors, iterations = _capped_solves(monkeypatch, True, (256, 256), (None, cap))
     assert cap == (256 * 256, 8, 12)
     assert iterations == {None: {20}, cap: {12}}
     assert errors[cap] == pytest.approx(errors[None], abs=0.005)
@@ -531,28 +542,8 @@ def test_a_plain_images_large_levels_take_fewer_cg_iterations(monkeypatch):
     # level takes steps of 8 CG iterations (PLAIN_SOLVER), not a tile's 12: the same heights
     # within 0.01 of normalised error and the issue's 0.3 for random bumps met (measured on the
     # bench's surfaces at 512 and 768 px and 800 px crops: summed error 13.125 -> 13.171 of 48).
-    from haptex_compile import shading_variational as sv
-
-    truth = ts.random_bumps((512, 512), PX, seed=2)
-    light = Light(30.0, 120.0)
-    img = render_lambertian(truth, PX, light, 0.8, periodic=False)
-    counted = []
-    gn_step = sv._Problem.gn_step
-
-    def step(self, z, albedo, max_cg, *args, **kwargs):
-        if z.shape == (300, 300):
-            counted.append(max_cg)
-        return gn_step(self, z, albedo, max_cg, *args, **kwargs)
-
-    monkeypatch.setattr(sv._Problem, "gn_step", step)
-    errors, iterations = {}, {}
-    for cap in (shading.DEFAULT_SOLVER["large_level_cap"], shading.PLAIN_SOLVER["large_level_cap"]):
-        counted.clear()
-        monkeypatch.setitem(shading.PLAIN_SOLVER, "large_level_cap", cap)
-        errors[cap] = normalised_height_error(
-            shape_from_shading(img, pixel_size_um=PX, light=light, periodic=False).height, truth)
-        iterations[cap] = set(counted)
-    tile_cap = shading.DEFAULT_SOLVER["large_level_cap"]
+    tile_cap, cap = shading.DEFAULT_SOLVER["large_level_cap"], shading.PLAIN_SOLVER["large_level_cap"]
+    errors, iterations = _capped_solves(monkeypatch, False, (300, 300), (tile_cap, cap))
     assert cap == (256 * 256, 8, 8)
     assert iterations == {tile_cap: {12}, cap: {8}}
     assert errors[cap] == pytest.approx(errors[tile_cap], abs=0.01)
