@@ -317,3 +317,38 @@ def energy_rows(z, r, img, w, dark, bright, has_dark, has_bright, albedo, dark_l
         sums[i, 0] = s0
         sums[i, 1] = s1
         sums[i, 2] = s2
+
+
+# The low-frequency prior's few waves along x (and the plane term's two row profiles), as
+# separable passes over rows: its operator works on a handful of waves, so per row it needs
+# only the row's products with those profiles and, back, their combination (the transform
+# along y of a few columns is left to the solver). Each row is one thread's, so the results do
+# not depend on the blocks of rows.
+
+
+@_kernel(fastmath={"reassoc"})
+def row_products_rows(v, profiles, out, r0, r1):
+    """Rows ``r0:r1`` of ``out[k, i] = sum_c v[i, c] * profiles[k, c]`` (float32)."""
+    m = v.shape[1]
+    for i in range(r0, r1):
+        vi = v[i]
+        for k in range(profiles.shape[0]):
+            pk = profiles[k]
+            s = np.float32(0.0)
+            for c in range(m):
+                s += vi[c] * pk[c]
+            out[k, i] = s
+
+
+@_kernel()
+def add_row_combinations_rows(coef, profiles, out, r0, r1):
+    """Rows ``r0:r1`` of ``out[i, c] += sum_k coef[k, i] * profiles[k, c]`` (float32)."""
+    m = out.shape[1]
+    for i in range(r0, r1):
+        o = out[i]
+        for k in range(profiles.shape[0]):
+            a = coef[k, i]
+            if a != 0:
+                pk = profiles[k]
+                for c in range(m):
+                    o[c] += a * pk[c]

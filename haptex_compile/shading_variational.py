@@ -60,8 +60,8 @@ import cv2
 from haptex_compile.malloc_policy import keep_freed_memory
 from haptex_compile.shading_image import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 from haptex_compile.shading_kernels import (
-    albedo_sums_rows, cg_direction_rows, cg_update_rows, energy_rows, gn_setup_rows, jacobian_rows, normal_rows,
-    reflectance_rows,
+    add_row_combinations_rows, albedo_sums_rows, cg_direction_rows, cg_update_rows, energy_rows, gn_setup_rows,
+    jacobian_rows, normal_rows, reflectance_rows, row_products_rows,
 )
 from haptex_compile.shading_prior import spectral_symbol
 
@@ -212,8 +212,8 @@ class _PlaneTerm(NamedTuple):
     The slopes are ``M^-1 (<ux, z>, <uy, z>)``, with ``u`` the weighted, centred coordinates
     and ``M`` their moments, and ``q = weight x sum(w) x M^-2``. Where the data weigh 1 on a
     top-left box and 0 elsewhere (an unmasked plain image), the ramps are kept as a row `rx`
-    and a column `ry` over that box and the sums run over it (1152 px level: 5.9 -> 3.6 ms a
-    call, 2.3 without the plane); else `ux`, `uy` are the full ramps.
+    and a column `ry` over that box (the solver applies them as row profiles: see
+    :class:`_LowFreqOperator`); else `ux`, `uy` are the full ramps.
     """
 
     q: np.ndarray
@@ -224,57 +224,118 @@ class _PlaneTerm(NamedTuple):
     uy: np.ndarray | None = None
 
     def add_to(self, v: np.ndarray, out: np.ndarray) -> None:
-        """Add the operator applied to `v` to `out`."""
-        if self.box is not None:
-            r1, c1 = self.box
-            box = v[:r1, :c1]
-            gx, gy = self.q @ [float(np.dot(box.sum(axis=0), self.rx)), float(np.dot(box.sum(axis=1), self.ry))]
-            o = out[:r1, :c1]
-            o += (self.rx * _F(gx))[None, :]
-            o += (self.ry * _F(gy))[:, None]
-        else:
-            gx, gy = self.q @ [float(np.vdot(self.ux, v)), float(np.vdot(self.uy, v))]
-            out += self.ux * _F(gx)
-            out += self.uy * _F(gy)
+        """Add the operator applied to `v` to `out` (with the full ramps)."""
+        gx, gy = self.q @ [float(np.vdot(self.ux, v)), float(np.vdot(self.uy, v))]
+        out += self.ux * _F(gx)
+        out += self.uy * _F(gy)
 
 
-# The low-frequency prior works on block means of up to this many pixels a side (a power of 2;
-# see _lowfreq_block); 1 = on the pixels.
-LOWFREQ_BLOCK = 8
+class _LowFreqOperator:
+    """The low-frequency prior's operator on a level: its symbol `sym` on the rectangle of
+    waves that holds the kept ones (rows `ky` and columns `kx` of the rfft layout of a `shape`
+    level, 0 on the others) and the :class:`_PlaneTerm` `plane` (or None).
 
-
-def _lowfreq_block(lf: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[int, int]):
-    """(b, symbol on the grid of b x b block means) for the low-frequency prior of symbol `lf`
-    (rfft layout of a `shape` level, kept waves on rows `ky` and columns `kx`), or None.
-
-    The prior's operator is then ``b² P^T L_b P`` with ``P`` the block means and ``L_b`` the
-    symbol on their grid: symmetric, and for a wave of k cycles per side the block mean keeps
-    ``sinc(k b / n)`` of it. Blocks are taken where they divide the level and every kept wave
-    has at most 1 / 16 of the block grid's cycles (it keeps 99.4 % of its amplitude or more).
-    FFTs of the block grid replace a level's transforms (1152 px level, 8 px blocks: 3.7 ->
-    1.0 ms a call).
+    The waves are few, so the solver keeps the prior's part of its vectors as those waves'
+    coefficients, carried along with the heights and the conjugate gradients' vectors (see
+    :meth:`_Problem.gn_step`): the operator then costs no pass over the level. It had been
+    applied on the pixels in every CG iteration (on block means of large levels), at about
+    the preconditioner's cost: 20 % of a 512 px plain image's solve. Measured against that in
+    one run (16 plain images of the bench's surfaces and lights, light given, best of 3,
+    alternating): 256 px 7.04 -> 5.90 s, 512 px 14.47 -> 13.18 s, 1024 px (best of 2) 40.55
+    -> 38.71 s; summed errors 3.969 -> 3.970, 4.031 -> 3.994, 4.185 -> 4.206 (the block
+    means' approximation is gone; a Brownian surface at 60° 0.664 -> 0.683, the others within
+    0.002). The plane term over a top-left box works on two row profiles, its ramp and its
+    indicator, in the solver's passes over the rows (shading_kernels); a plane over masked
+    data, on the pixels.
     """
-    rows, cols = shape
-    if ky.size == 0 or kx.size == 0:
-        return None
-    fy = np.where(ky <= rows // 2, ky, ky - rows)  # signed cycles per side
-    top_y, top_x = int(np.max(np.abs(fy))), int(np.max(kx))
-    b = LOWFREQ_BLOCK
-    while b > 1 and (rows % b or cols % b or 16 * top_y > rows // b or 16 * top_x > cols // b):
-        b //= 2
-    if b == 1:
-        return None
-    rb, cb = rows // b, cols // b
-    sym = np.zeros((rb, cb // 2 + 1), _F)
-    sym[np.ix_(np.mod(fy, rb), kx)] = lf[np.ix_(ky, kx)]
-    return b, sym
 
+    def __init__(self, sym: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[int, int],
+                 plane: _PlaneTerm | None):
+        rows, cols = shape
+        self.ky, self.kx, self.shape = ky, kx, shape
+        self.index = np.ix_(ky, kx)
+        self.sym = sym.astype(np.float64)
+        # Parseval on the rfft layout: <u, v> = sum(weight x Re(conj(U) V)); the mean and a
+        # Nyquist column count once, the others twice. The coefficients are the spectrum's
+        # times sqrt(weight), so that inner products are plain ones.
+        self.root = np.sqrt(np.where((kx == 0) | (2 * kx == cols), 1.0, 2.0) / (rows * cols))[None, :]
+        self.plane = plane
+        self.profiles = None
+        if plane is not None and plane.box is not None:
+            c1 = plane.box[1]
+            self.profiles = np.zeros((2, cols), _F)
+            self.profiles[0, :c1], self.profiles[1, :c1] = plane.rx, 1.0
 
-def _block_means(a: np.ndarray, b: int) -> np.ndarray:
-    """Means of the b x b blocks of `a` (sides multiples of b; b = 1: `a` itself)."""
-    if b == 1:
-        return a
-    return cv2.resize(a, (a.shape[1] // b, a.shape[0] // b), interpolation=cv2.INTER_AREA)
+    def analyse(self, v: np.ndarray, workers: int) -> np.ndarray:
+        """The rectangle's coefficients of `v` (complex128)."""
+        return self.waves(sfft.rfft2(v, workers=workers))
+
+    def waves(self, spectrum: np.ndarray) -> np.ndarray:
+        """The rectangle's coefficients in an rfft2 `spectrum` (complex128)."""
+        return spectrum[self.index] * self.root
+
+    def add_to_spectrum(self, coef: np.ndarray, spectrum: np.ndarray) -> None:
+        """Add the waves of coefficients `coef` to an rfft2 `spectrum`."""
+        spectrum[self.index] += coef / self.root
+
+    def inner(self, a: np.ndarray, b: np.ndarray) -> float:
+        """The inner product of two vectors made of the rectangle's waves, coefficients `a`
+        and `b`."""
+        return float(np.vdot(a, b).real)
+
+    def to_pixels(self, coef: np.ndarray, workers: int) -> np.ndarray:
+        """The vector (float32, the level's shape) made of the rectangle's waves with
+        coefficients `coef`."""
+        spec = np.zeros((self.shape[0], self.shape[1] // 2 + 1), np.complex64)
+        self.add_to_spectrum(coef, spec)
+        return sfft.irfft2(spec, s=self.shape, workers=workers, overwrite_x=True).astype(_F, copy=False)
+
+    def products(self) -> np.ndarray | None:
+        """An array for the rows' products with the plane's profiles (see
+        ``row_products_rows``), None without them."""
+        return None if self.profiles is None else np.empty((2, self.shape[0]), _F)
+
+    def plane_moments(self, products: np.ndarray) -> np.ndarray:
+        """The plane's ``(<ux, v>, <uy, v>)`` from `v`'s row products with its profiles."""
+        plane, r1 = self.plane, self.plane.box[0]
+        return np.array([float(products[0, :r1].sum(dtype=np.float64)),
+                         float(np.dot(products[1, :r1].astype(np.float64), plane.ry))])
+
+    def plane_coefficients(self, products: np.ndarray) -> np.ndarray:
+        """The plane's profiles' coefficients per row for heights whose row products with
+        them are `products` (see ``add_row_combinations_rows``)."""
+        plane, r1 = self.plane, self.plane.box[0]
+        gx, gy = plane.q @ self.plane_moments(products)
+        coef = np.zeros(products.shape, _F)
+        coef[0, :r1] = gx
+        coef[1, :r1] = plane.ry * _F(gy)
+        return coef
+
+    def energy(self, v: np.ndarray, waves: np.ndarray, workers: int) -> float:
+        """The prior's energy of heights `v` whose coefficients are `waves`."""
+        e = 0.5 * self.inner(waves, self.sym * waves)
+        if self.plane is not None:
+            if self.profiles is None:
+                moments = np.array([float(np.vdot(self.plane.ux, v)), float(np.vdot(self.plane.uy, v))])
+            else:
+                products = self.products()
+                _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop),
+                          _row_blocks(v.shape[0], workers))
+                moments = self.plane_moments(products)
+            e += 0.5 * float(moments @ self.plane.q @ moments)
+        return e
+
+    def add_plane(self, v: np.ndarray, out: np.ndarray, workers: int) -> None:
+        """Add the plane term applied to `v` to `out` (on the pixels)."""
+        if self.plane is None:
+            return
+        if self.profiles is None:
+            self.plane.add_to(v, out)
+            return
+        products, blocks = self.products(), _row_blocks(v.shape[0], workers)
+        _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop), blocks)
+        coef = self.plane_coefficients(products)
+        _run_rows(lambda rows: add_row_combinations_rows(coef, self.profiles, out, rows.start, rows.stop), blocks)
 
 
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
@@ -354,11 +415,8 @@ class _Problem:
                 across = (c[0] * np.sin(wx) + c[1] * np.sin(wy)) ** 2
             lf = mu * phi * across
             # The penalty lives on a few waves (phi is below LOWFREQ_SUPPORT of its peak
-            # beyond about 4 cycles per data region): transform along x, keep those columns,
-            # and transform only them along y, rather than an FFT pair over the level (1125 px:
-            # 5.6 -> 2.3 ms a call). Not matrix products: OpenBLAS's threads then spin and slow
-            # the FFTs that follow (2 x over a whole level; with the spectral prior's 15 x 8
-            # waves, 1 Mpx plain image 2.2 -> 2.8 s).
+            # beyond about 4 cycles per data region), which the solver keeps as coefficients
+            # (see _LowFreqOperator).
             keep = lf > LOWFREQ_SUPPORT * float(lf.max())
             if lowfreq_spectral is not None:
                 # The image's own long-wave power tightens the prior (shading_prior), on the
@@ -370,53 +428,30 @@ class _Problem:
                 spectral[np.ix_(ry, rx)] = spectral_symbol(wx[:, rx], wy[ry], across[np.ix_(ry, rx)], **lowfreq_spectral)
                 lf = np.maximum(np.where(keep, lf, 0.0), spectral)
                 keep |= spectral > 0
-            self._lf_ky = np.flatnonzero(keep.any(axis=1))
-            self._lf_kx = np.flatnonzero(keep.any(axis=0))
-            # The preconditioner sees the kept waves; the operator, the rectangle of rows and
-            # columns that holds them (the rest of it below LOWFREQ_SUPPORT as well).
+            ky, kx = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
+            # The preconditioner and the operator see the kept waves (the operator on the
+            # rectangle of rows and columns that holds them: see _LowFreqOperator).
             self.lf = np.where(keep, lf, 0.0).astype(_F)
-            # On block means where the level allows (the kept waves are long, and the block
-            # means of the height carry them: see _lowfreq_block), else on the rectangle.
-            self._lf_block = _lowfreq_block(self.lf, self._lf_ky, self._lf_kx, (rows, cols))
-            if self._lf_block is None:
-                self._lf_sym = np.zeros((rows, len(self._lf_kx)), _F)  # the rectangle, in its columns
-                self._lf_sym[self._lf_ky] = lf[np.ix_(self._lf_ky, self._lf_kx)]
             # The slopes of the least-squares plane through the data (data-weighted): a tilt
             # along the light is traded against the albedo, and on the periodic domain it
             # costs only its return in the margin, which the prior's few long waves hardly
             # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
-            # With blocks, on the block means as the waves: their plane's energy with the
-            # pixels' weight (slopes per block b x those per pixel, weights summing to 1 / b²
-            # of the pixels'); its gradient P^T ∇E is 1 / b² of what lowfreq's replication
-            # spreads, hence the weight / b².
-            b = 1 if self._lf_block is None else self._lf_block[0]
-            self._plane = (_plane_term(_block_means(self.w, b), lowfreq_plane * mu / (b * b))
-                           if lowfreq_plane > 0 else None)
+            plane = _plane_term(self.w, lowfreq_plane * mu) if lowfreq_plane > 0 else None
+            self._lf = _LowFreqOperator(self.lf[np.ix_(ky, kx)], ky, kx, (rows, cols), plane)
 
     def lowfreq(self, v):
-        """The low-frequency penalty's operator applied to `v` (its symbol on the block means,
-        or on the rectangle of waves that holds the kept ones, and the plane's rank-two term)."""
-        if self._lf_block is not None:
-            b, sym = self._lf_block
-            means = _block_means(v, b)
-            out_b = sfft.irfft2(sfft.rfft2(means) * sym, s=means.shape).astype(_F, copy=False)
-            if self._plane is not None:
-                self._plane.add_to(means, out_b)
-            # b² P^T (P: the block means): each block's value on its b² pixels (whole rows
-            # copied last: 1200 px level, 0.56 -> 0.13 ms against cv2's nearest resize).
-            return np.repeat(np.repeat(out_b, b, axis=1), b, axis=0)
-        cols_x = sfft.rfft(v, axis=1, workers=self.workers)[:, self._lf_kx]  # (rows, nx)
-        spec = sfft.fft(cols_x, axis=0, overwrite_x=True)  # those columns' 2-D spectrum
-        spec *= self._lf_sym
-        back = np.zeros((v.shape[0], v.shape[1] // 2 + 1), np.complex64)
-        back[:, self._lf_kx] = sfft.ifft(spec, axis=0, overwrite_x=True)
-        out = sfft.irfft(back, n=v.shape[1], axis=1, workers=self.workers, overwrite_x=True)
-        out = out.astype(_F, copy=False)
-        if self._plane is not None:
-            self._plane.add_to(v, out)
+        """The low-frequency penalty's operator applied to `v` (its symbol on the kept waves
+        and the plane's rank-two term)."""
+        op = self._lf
+        out = op.to_pixels(op.sym * op.analyse(v, self.workers), self.workers)
+        op.add_plane(v, out, self.workers)
         return out
+
+    def waves(self, z):
+        """The prior's coefficients of heights `z` (None without the prior)."""
+        return None if self.lf is None else self._lf.analyse(z, self.workers)
 
     def reflectance_args(self) -> tuple:
         """The kernels' reflectance arguments (float32): the light, the damping ``k`` of the
@@ -435,8 +470,9 @@ class _Problem:
         """Row blocks of the elementwise work, one per thread."""
         return _row_blocks(rows, self.workers)
 
-    def energy(self, z, albedo, r=None):
-        """Total energy; `r` (the reflectance of `z`) is recomputed unless given."""
+    def energy(self, z, albedo, r=None, zw=None):
+        """Total energy; `r` (the reflectance of `z`) and `zw` (its prior's coefficients,
+        :meth:`waves`) are computed unless given."""
         if r is None:
             r = self.reflectance(z)
         # By row: w res², the censored pixels' one-sided terms and the thin plate's squared
@@ -447,7 +483,7 @@ class _Problem:
         data, censored, thin_plate = sums.sum(axis=0)
         e = 0.5 * float(data) + 0.5 * float(censored) + 0.5 * self.lam * float(thin_plate)
         if self.lf is not None:
-            e += 0.5 * float(np.vdot(z, self.lowfreq(z)))
+            e += self._lf.energy(z, self.waves(z) if zw is None else zw, self.workers)
         return e
 
     def reflectance(self, z):
@@ -483,16 +519,27 @@ class _Problem:
             inv[held] = 0.0
         return inv
 
-    def apply_pre(self, inv_sym, v):
+    def apply_pre(self, inv_sym, v, waves=None):
+        """The preconditioner applied to `v` plus, with the prior, the vector of the prior's
+        waves with coefficients `waves`: (result, its waves' coefficients, `v`'s waves'
+        coefficients), the last two None without `waves`."""
         f = sfft.rfft2(v, workers=self.workers)
+        v_waves = z_waves = None
+        if waves is not None:
+            v_waves = self._lf.waves(f)
+            self._lf.add_to_spectrum(waves, f)
         f *= inv_sym
+        if waves is not None:
+            z_waves = self._lf.waves(f)
         # The spectrum is a temporary: the inverse may work in it (measured at 1024 px: 4.1
         # -> 3.5 ms for the pair of transforms).
-        return sfft.irfft2(f, s=self.shape, workers=self.workers, overwrite_x=True)
+        return sfft.irfft2(f, s=self.shape, workers=self.workers, overwrite_x=True), z_waves, v_waves
 
-    def gn_step(self, z, albedo, max_cg, tol, previous=()):
+    def gn_step(self, z, albedo, max_cg, tol, previous=(), zw=None):
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
-        the span of that direction and the `previous` steps; returns (dz, energy gradient)."""
+        the span of that direction and the `previous` steps (pairs of a step and its prior's
+        coefficients); returns (dz, its prior's coefficients, the energy's gradient less the
+        prior's waves). With the prior, `zw` are `z`'s coefficients."""
         blocks = self.blocks(z.shape[0])
         ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(9))
         # By row: the sums of w rp², w rp rq, w rq² (the preconditioner's tensor) and w r².
@@ -531,25 +578,45 @@ class _Problem:
         # projection's factors, and the preconditioner's tensor; then the gradient.
         _run_rows(lambda rows: gn_setup_rows(*setup_args, rows.start, rows.stop), blocks)
         _run_rows(gradient, blocks)
-        if self.lf is not None:
-            grad = grad + self.lowfreq(z)
+        lf = self._lf if self.lf is not None else None
+        b_waves = None
+        if lf is not None:
+            # The gradient's prior part: the plane's on the pixels, the waves' as coefficients.
+            grad = grad.copy()
+            lf.add_plane(z, grad, self.workers)
             b = -grad
+            b_waves = -(lf.sym * zw)
         jv = np.empty(z.shape, _F)
         vp = None  # (u, s) of the variable projection, when it applies
 
         lam32, shift32 = _F(self.lam), _F(1e-6)
+        profiles = None if lf is None else lf.profiles
 
         def matvec(v):
             # J v, then the thin plate, D^T of J v's weighted terms and the projection's
-            # rank-one term, in two compiled passes (shading_kernels); then a low-frequency
-            # penalty.
+            # rank-one term, in two compiled passes (shading_kernels); the plane term's row
+            # products in the first, its rows' combinations in the second. Not the prior's
+            # waves: conjugate gradients keep them as coefficients.
             out = np.empty_like(v)
             u, cu = (v, _F(0.0)) if vp is None else (vp[0], _F(float(np.vdot(vp[0], v)) / vp[1]))
-            _run_rows(lambda rows: jacobian_rows(v, ha, hb, jv, rows.start, rows.stop), blocks)
-            _run_rows(lambda rows: normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out,
-                                               rows.start, rows.stop), blocks)
-            if self.lf is not None:
-                out += self.lowfreq(v)
+            products = None if lf is None else lf.products()
+
+            def first(rows):
+                jacobian_rows(v, ha, hb, jv, rows.start, rows.stop)
+                if profiles is not None:
+                    row_products_rows(v, profiles, products, rows.start, rows.stop)
+
+            _run_rows(first, blocks)
+            coef = None if profiles is None else lf.plane_coefficients(products)
+
+            def second(rows):
+                normal_rows(v, jv, nwa, nwb, lam32, shift32, u, cu, out, rows.start, rows.stop)
+                if profiles is not None:
+                    add_row_combinations_rows(coef, profiles, out, rows.start, rows.stop)
+
+            _run_rows(second, blocks)
+            if lf is not None and profiles is None and lf.plane is not None:
+                lf.plane.add_to(v, out)
             return out
 
         totals = row_sums.sum(axis=0)
@@ -562,52 +629,89 @@ class _Problem:
             vp = (u, s_vp)
 
         inv_sym = self.precond([float(t) for t in totals[:3]], albedo)
+        # With the prior, the residual is `rr` plus the waves of coefficients `rho`, and the
+        # iterates' coefficients are kept beside them (`d_waves`, `x_waves`): the prior's
+        # operator never touches the pixels, and inner products take its waves' part by
+        # Parseval. The same iterations as on the pixels.
         x = np.zeros_like(b)
         rr = b.copy()
-        zz = self.apply_pre(inv_sym, rr)
-        d = zz.copy()
+        rho = None if lf is None else b_waves.copy()
+        zz, z_waves, r_waves = self.apply_pre(inv_sym, rr, rho)
+        d, d_waves = zz.copy(), z_waves
         rz = float(np.vdot(rr, zz))
-        b_norm = float(np.sqrt(np.vdot(b, b))) or 1.0
+        b_sq = float(np.vdot(b, b))
+        if lf is not None:
+            rz += lf.inner(rho, z_waves)
+            b_sq += 2 * lf.inner(r_waves, b_waves) + lf.inner(b_waves, b_waves)
+            x_waves = np.zeros_like(rho)
+        b_norm = float(np.sqrt(max(b_sq, 0.0))) or 1.0
         row_sq = np.empty(z.shape[0])  # sums of rr² by row (see cg_update_rows)
         for it in range(max_cg):
             ad = matvec(d)
             dad = float(np.vdot(d, ad))
+            if lf is not None:
+                ad_waves = lf.sym * d_waves
+                dad += lf.inner(d_waves, ad_waves)
             if dad <= 0 or not np.isfinite(dad):
                 break
             alpha = rz / dad
 
             a32 = _F(alpha)
             _run_rows(lambda rows: cg_update_rows(x, rr, d, ad, a32, row_sq, rows.start, rows.stop), blocks)
-            if float(np.sqrt(row_sq.sum())) < tol * b_norm or it == max_cg - 1:
-                break  # converged, or the last iteration: no next direction (and its transforms)
-            zz = self.apply_pre(inv_sym, rr)
+            if lf is None:
+                if float(np.sqrt(row_sq.sum())) < tol * b_norm or it == max_cg - 1:
+                    break  # converged, or the last iteration: no next direction (and its transforms)
+                zz, _, _ = self.apply_pre(inv_sym, rr)
+            else:
+                x_waves += alpha * d_waves
+                rho -= alpha * ad_waves
+                if it == max_cg - 1:
+                    break
+                zz, z_waves, r_waves = self.apply_pre(inv_sym, rr, rho)
+                sq = row_sq.sum() + 2 * lf.inner(r_waves, rho) + lf.inner(rho, rho)
+                if float(np.sqrt(max(sq, 0.0))) < tol * b_norm:
+                    break
             rz_new = float(np.vdot(rr, zz))
+            if lf is not None:
+                rz_new += lf.inner(rho, z_waves)
             if not rz_new > 0:  # nothing left that the preconditioner lets through
                 break
             b32 = _F(rz_new / rz)
             _run_rows(lambda rows: cg_direction_rows(d, zz, b32, rows.start, rows.stop), blocks)
+            if lf is not None:
+                d_waves = (rz_new / rz) * d_waves + z_waves
             rz = rz_new
+        if lf is None:
+            if previous:
+                x = _subspace_minimum([x, *(p for p, _ in previous)], [b - rr, *(matvec(p) for p, _ in previous)], b)
+            return x, None, grad
         if previous:
-            x = _subspace_minimum([x, *previous], [b - rr, *map(matvec, previous)], b)
-        return x, grad
+            # A x = b - r; A u = the pixels' part and the prior's on coefficients.
+            x, x_waves = _subspace_minimum(
+                [(x, x_waves), *previous],
+                [(b - rr, b_waves - rho), *((matvec(p), lf.sym * w) for p, w in previous)],
+                (b, b_waves), lf.inner)
+        return x, x_waves, grad
 
     def solve(self, z, albedo, n_gn, max_cg, tol, fit_albedo, gn_rtol=0.0, subspace_steps=0):
+        zw = self.waves(z)  # the prior's coefficients, carried along with the heights
         if self.project_albedo:
-            albedo, e = self.fit_albedo(z, albedo)
+            albedo, e = self.fit_albedo(z, albedo, zw=zw)
         else:
-            e = self.energy(z, albedo)
-        previous = []  # the last accepted steps, newest first
+            e = self.energy(z, albedo, zw=zw)
+        previous = []  # the last accepted steps and their coefficients, newest first
         for _ in range(n_gn):
-            dz, grad = self.gn_step(z, albedo, max_cg, tol, previous)
+            dz, dzw, _ = self.gn_step(z, albedo, max_cg, tol, previous, zw)
             step = 1.0
             accepted = False
             for _ in range(8):  # backtracking: GN may overshoot where R is far from linear
                 zt = z + step * dz
+                zwt = None if zw is None else zw + step * dzw
                 rt = self.reflectance(zt)
                 if self.project_albedo:
-                    at, et = self.fit_albedo(zt, albedo, rt)
+                    at, et = self.fit_albedo(zt, albedo, rt, zwt)
                 else:
-                    et = self.energy(zt, albedo, rt)
+                    et = self.energy(zt, albedo, rt, zwt)
                 if np.isfinite(et) and et <= e:
                     accepted = True
                     break
@@ -616,12 +720,12 @@ class _Problem:
                 break
             small = step == 1.0 and e - et < gn_rtol * e
             if subspace_steps:
-                previous = [step * dz, *previous][:subspace_steps]
-            z, e = zt, et
+                previous = [(step * dz, None if dzw is None else step * dzw), *previous][:subspace_steps]
+            z, zw, e = zt, zwt, et
             if self.project_albedo:
                 albedo = at
             elif fit_albedo:
-                albedo, e = self.fit_albedo(z, albedo, rt)
+                albedo, e = self.fit_albedo(z, albedo, rt, zw)
             if small:
                 break  # a full step gained little: converged on this level
         return z, albedo
@@ -631,7 +735,9 @@ class _Problem:
         low = max(self.albedo_min, 1e-3)
         return low * (1 + 1e-6) < albedo < self.albedo_max * (1 - 1e-6)
 
-    def fit_albedo(self, z, albedo, r=None):
+    def fit_albedo(self, z, albedo, r=None, zw=None):
+        """The least-squares albedo for heights `z` (within bounds) and the energy there (`r`,
+        `zw`: as for :meth:`energy`)."""
         if r is None:
             r = self.reflectance(z)
         sums = np.empty((z.shape[0], 2))  # by row: w r², w r img
@@ -642,23 +748,29 @@ class _Problem:
             a = num / den
             if np.isfinite(a) and a > 0:
                 albedo = self.bounded_albedo(a)
-        return albedo, self.energy(z, albedo, r)
+        return albedo, self.energy(z, albedo, r, zw)
 
     def bounded_albedo(self, albedo: float) -> float:
         """`albedo` held within this level's bounds."""
         return min(max(albedo, self.albedo_min, 1e-3), self.albedo_max)
 
 
-def _subspace_minimum(directions, products, b):
+def _subspace_minimum(directions, products, b, inner=None):
     """The minimum of the quadratic model ``1/2 x.A x - b.x`` over the span of `directions`.
 
     `products` are the directions times A. The model's 2-3 dimensional restriction is solved
     exactly; when it is not positive definite (nearly parallel directions, float32 round-off),
-    the first direction is returned unchanged.
+    the first direction is returned unchanged. With `inner`, every vector is a pair (pixels,
+    the prior's coefficients), `inner` the coefficients' inner product, and so is the result.
     """
-    h = np.array([[float(np.vdot(u, av)) for av in products] for u in directions])
+    def dot(u, v):
+        if inner is None:
+            return float(np.vdot(u, v))
+        return float(np.vdot(u[0], v[0])) + inner(u[1], v[1])
+
+    h = np.array([[dot(u, av) for av in products] for u in directions])
     h = 0.5 * (h + h.T)
-    g = np.array([float(np.vdot(u, b)) for u in directions])
+    g = np.array([dot(u, b) for u in directions])
     scale = np.sqrt(np.abs(np.diag(h)))
     if not np.all(np.isfinite(h)) or np.any(scale == 0):
         return directions[0]
@@ -668,6 +780,11 @@ def _subspace_minimum(directions, products, b):
     coef = np.linalg.solve(hn, g / scale) / scale
     if not np.all(np.isfinite(coef)):
         return directions[0]
+    if inner is not None:
+        out = directions[0][0] * _F(coef[0])
+        for c, u in zip(coef[1:], directions[1:]):
+            out += u[0] * _F(c)
+        return out, sum(c * u[1] for c, u in zip(coef, directions))
     out = directions[0] * _F(coef[0])
     for c, u in zip(coef[1:], directions[1:]):
         out += u * _F(c)
