@@ -295,6 +295,12 @@ class _LowFreqOperator:
         ``row_products_rows``), None without them."""
         return None if self.profiles is None else np.empty((2, self.shape[0]), _F)
 
+    def products_of(self, v: np.ndarray, blocks: list[slice]) -> np.ndarray:
+        """`v`'s rows' products with the plane's profiles (in threads by `blocks` of rows)."""
+        products = self.products()
+        _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop), blocks)
+        return products
+
     def plane_moments(self, products: np.ndarray) -> np.ndarray:
         """The plane's ``(<ux, v>, <uy, v>)`` from `v`'s row products with its profiles."""
         plane, r1 = self.plane, self.plane.box[0]
@@ -318,10 +324,7 @@ class _LowFreqOperator:
             if self.profiles is None:
                 moments = np.array([float(np.vdot(self.plane.ux, v)), float(np.vdot(self.plane.uy, v))])
             else:
-                products = self.products()
-                _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop),
-                          _row_blocks(v.shape[0], workers))
-                moments = self.plane_moments(products)
+                moments = self.plane_moments(self.products_of(v, _row_blocks(v.shape[0], workers)))
             e += 0.5 * float(moments @ self.plane.q @ moments)
         return e
 
@@ -332,9 +335,8 @@ class _LowFreqOperator:
         if self.profiles is None:
             self.plane.add_to(v, out)
             return
-        products, blocks = self.products(), _row_blocks(v.shape[0], workers)
-        _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop), blocks)
-        coef = self.plane_coefficients(products)
+        blocks = _row_blocks(v.shape[0], workers)
+        coef = self.plane_coefficients(self.products_of(v, blocks))
         _run_rows(lambda rows: add_row_combinations_rows(coef, self.profiles, out, rows.start, rows.stop), blocks)
 
 
@@ -582,7 +584,6 @@ class _Problem:
         b_waves = None
         if lf is not None:
             # The gradient's prior part: the plane's on the pixels, the waves' as coefficients.
-            grad = grad.copy()
             lf.add_plane(z, grad, self.workers)
             b = -grad
             b_waves = -(lf.sym * zw)
