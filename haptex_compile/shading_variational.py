@@ -347,18 +347,25 @@ def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
     wsum = float(w.sum())
     if wsum <= 0:
         return None
-    yy, xx = np.mgrid[: w.shape[0], : w.shape[1]]
-    ramps = [((u - float(np.sum(w * u)) / wsum) * w) for u in (xx, yy)]
-    moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
+    r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
+    box = wsum == r1 * c1 and bool(np.all(w[:r1, :c1] == 1))
+    if box:
+        # Ones on the top-left box: the centred ramps are a row and a column, and their
+        # moments are sums over them (a 600 px level's term: 26 -> 1 ms).
+        rx, ry = (np.arange(n) - (n - 1) / 2.0 for n in (c1, r1))
+        moments = np.diag([r1 * float(rx @ rx), c1 * float(ry @ ry)])
+    else:
+        yy, xx = np.mgrid[: w.shape[0], : w.shape[1]]
+        ramps = [((u - float(np.sum(w * u)) / wsum) * w) for u in (xx, yy)]
+        moments = np.array([[float(np.sum(a * u)) for u in (xx, yy)] for a in ramps])
     eig = np.linalg.eigvalsh(moments)
     if not eig[0] > 1e-6 * max(eig[1], 1e-30):
         return None
     inv = np.linalg.inv(moments)
     q = weight * wsum * inv @ inv
+    if box:
+        return _PlaneTerm(q, (r1, c1), rx=rx.astype(_F), ry=ry.astype(_F))
     ux, uy = (a.astype(_F) for a in ramps)
-    r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
-    if np.all(w[:r1, :c1] == 1) and wsum == r1 * c1:
-        return _PlaneTerm(q, (r1, c1), rx=ux[0, :c1].copy(), ry=uy[:r1, 0].copy())
     return _PlaneTerm(q, ux=ux, uy=uy)
 
 
