@@ -548,7 +548,7 @@ class _Problem:
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
         the span of that direction and the `previous` steps (pairs of a step and its prior's
         coefficients); returns (dz, its prior's coefficients, the energy's gradient less the
-        prior's waves). With the prior, `zw` are `z`'s coefficients."""
+        prior's waves). With the prior, `zw` are `z`'s coefficients (computed if not given)."""
         blocks = self.blocks(z.shape[0])
         ha, hb, nwa, nwb, fa, fb, grad, b, tb = (np.empty(z.shape, _F) for _ in range(9))
         # By row: the sums of w rp², w rp rq, w rq² (the preconditioner's tensor) and w r².
@@ -592,8 +592,8 @@ class _Problem:
         if lf is not None:
             # The gradient's prior part: the plane's on the pixels, the waves' as coefficients.
             lf.add_plane(z, grad, self.workers)
-            b = -grad
-            b_waves = -(lf.sym * zw)
+            np.negative(grad, out=b)
+            b_waves = -(lf.sym * (self.waves(z) if zw is None else zw))
         jv = np.empty(z.shape, _F)
         vp = None  # (u, s) of the variable projection, when it applies
 
