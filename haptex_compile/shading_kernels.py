@@ -319,11 +319,10 @@ def energy_rows(z, r, img, w, dark, bright, has_dark, has_bright, albedo, dark_l
         sums[i, 2] = s2
 
 
-# The low-frequency prior's few waves along x (and the plane term's two row profiles), as
-# separable passes over rows: its operator works on a handful of waves, so per row it needs
-# only the row's products with those profiles and, back, their combination (the transform
-# along y of a few columns is left to the solver). Each row is one thread's, so the results do
-# not depend on the blocks of rows.
+# Row profiles (the plain-image prior's plane term: its ramp and its box's indicator along x):
+# per row, the row's products with the profiles and, back, their combination, inside the
+# solver's passes over the rows. Each row is one thread's, so the results do not depend on the
+# blocks of rows.
 
 
 @_kernel(fastmath={"reassoc"})

@@ -223,17 +223,21 @@ class _PlaneTerm(NamedTuple):
     ux: np.ndarray | None = None
     uy: np.ndarray | None = None
 
+    def moments(self, v: np.ndarray) -> np.ndarray:
+        """``(<ux, v>, <uy, v>)`` (with the full ramps)."""
+        return np.array([float(np.vdot(self.ux, v)), float(np.vdot(self.uy, v))])
+
     def add_to(self, v: np.ndarray, out: np.ndarray) -> None:
         """Add the operator applied to `v` to `out` (with the full ramps)."""
-        gx, gy = self.q @ [float(np.vdot(self.ux, v)), float(np.vdot(self.uy, v))]
+        gx, gy = self.q @ self.moments(v)
         out += self.ux * _F(gx)
         out += self.uy * _F(gy)
 
 
 class _LowFreqOperator:
-    """The low-frequency prior's operator on a level: its symbol `sym` on the rectangle of
-    waves that holds the kept ones (rows `ky` and columns `kx` of the rfft layout of a `shape`
-    level, 0 on the others) and the :class:`_PlaneTerm` `plane` (or None).
+    """The low-frequency prior's operator on a level: its symbol `lf` (rfft layout of a
+    `shape` level) on the rectangle of rows `ky` and columns `kx` that holds the kept waves,
+    and the :class:`_PlaneTerm` `plane` (or None).
 
     The waves are few, so the solver keeps the prior's part of its vectors as those waves'
     coefficients, carried along with the heights and the conjugate gradients' vectors (see
@@ -249,12 +253,12 @@ class _LowFreqOperator:
     data, on the pixels.
     """
 
-    def __init__(self, sym: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[int, int],
+    def __init__(self, lf: np.ndarray, ky: np.ndarray, kx: np.ndarray, shape: tuple[int, int],
                  plane: _PlaneTerm | None):
         rows, cols = shape
-        self.ky, self.kx, self.shape = ky, kx, shape
+        self.shape = shape
         self.index = np.ix_(ky, kx)
-        self.sym = sym.astype(np.float64)
+        self.sym = lf[self.index].astype(np.float64)
         # Parseval on the rfft layout: <u, v> = sum(weight x Re(conj(U) V)); the mean and a
         # Nyquist column count once, the others twice. The coefficients are the spectrum's
         # times sqrt(weight), so that inner products are plain ones.
@@ -322,7 +326,7 @@ class _LowFreqOperator:
         e = 0.5 * self.inner(waves, self.sym * waves)
         if self.plane is not None:
             if self.profiles is None:
-                moments = np.array([float(np.vdot(self.plane.ux, v)), float(np.vdot(self.plane.uy, v))])
+                moments = self.plane.moments(v)
             else:
                 moments = self.plane_moments(self.products_of(v, _row_blocks(v.shape[0], workers)))
             e += 0.5 * float(moments @ self.plane.q @ moments)
@@ -448,7 +452,7 @@ class _Problem:
             # term of this operator. (Not the mean of the differences: that telescopes to the
             # edge pixels, which then bend to meet it.)
             plane = _plane_term(self.w, lowfreq_plane * mu) if lowfreq_plane > 0 else None
-            self._lf = _LowFreqOperator(self.lf[np.ix_(ky, kx)], ky, kx, (rows, cols), plane)
+            self._lf = _LowFreqOperator(self.lf, ky, kx, (rows, cols), plane)
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the kept waves
@@ -623,8 +627,8 @@ class _Problem:
                     add_row_combinations_rows(coef, profiles, out, rows.start, rows.stop)
 
             _run_rows(second, blocks)
-            if lf is not None and profiles is None and lf.plane is not None:
-                lf.plane.add_to(v, out)
+            if lf is not None and profiles is None:
+                lf.add_plane(v, out, self.workers)  # a plane over masked data, on the pixels
             return out
 
         totals = row_sums.sum(axis=0)

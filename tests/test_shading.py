@@ -845,7 +845,7 @@ def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monke
 
 
 def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
-    # The prior is applied by separable sums over the waves it keeps; it must equal the full
+    # The prior is applied on the coefficients of the waves it keeps; it must equal the full
     # FFT with the kept symbol (odd and even sides, light with both components), on small
     # levels and on large ones (two threads of rows there).
     import scipy.fft as sfft
