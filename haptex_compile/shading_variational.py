@@ -47,6 +47,7 @@ a wrong light of a few degrees costs a lot (see ``bench/bench_shading.py``).
 """
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from collections.abc import Callable, Collection
@@ -57,6 +58,7 @@ import numpy as np
 import scipy.fft as sfft
 import cv2
 
+from haptex_compile.forked_map import call_beside
 from haptex_compile.malloc_policy import keep_freed_memory
 from haptex_compile.shading_image import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
 from haptex_compile.shading_kernels import (
@@ -78,6 +80,13 @@ SUBGRID_DAMPING = 2.0
 # are identical on any number of threads (at 256 x 256 px the threads cost more than they
 # gain: a 256 px solve 66 -> 103 ms).
 PARALLEL_FFT_MIN_PIXELS = 1 << 18
+# Processes of the low-frequency prior's test (solve_variational's lowfreq_check_level): the
+# coarse levels with the prior here and, side by side, without it in a forked child (None: when
+# this process may use 2 CPUs or more; 1: one after the other here; see forked_map.call_beside).
+# The same heights either way. Measured in one run (16 plain images of each size, the bench's
+# surfaces and lights, light given, best of 3, alternating): 256 px 0.75 x the time, 384 px
+# 0.96, 512 px 0.92-1.00 (the test is at most 150 px of a side, a fixed cost).
+CHECK_PROCESSES: int | None = None
 # Waves whose low-frequency penalty is below this fraction of its peak are left out of it.
 LOWFREQ_SUPPORT = 1e-6
 _POOLS: dict[int, ThreadPoolExecutor] = {}
@@ -1160,13 +1169,12 @@ def solve_variational(
         z = cv2.resize(zf, pyramid[-1][0].shape[::-1], interpolation=cv2.INTER_AREA)
         z = z * (pyramid[-1][0].shape[1] / zf.shape[1])
 
-    def run_level(level, z, albedo, prior_weight):
-        """Solve one level from `z` (None: flat) with the low-frequency prior of weight
-        `prior_weight`; returns (z, albedo, the level's problem)."""
+    def level_problem(level, albedo, prior_weight):
+        """The problem of pyramid level `level` with the low-frequency prior of weight
+        `prior_weight` (relative to `albedo`²), with the level's settings."""
         img, w, d, b = pyramid[level]
         if not censored_data:
             w = _uncensored_weight(w, d, b)
-        z = np.zeros(img.shape, _F) if z is None else _upsample(z, img.shape)
         if level == 0:
             prior_weight *= lowfreq_fine_factor
         lowfreq, spectral = _level_prior(img.shape[1] / image.shape[1], albedo, data_shape, prior_weight,
@@ -1182,30 +1190,40 @@ def solve_variational(
         prob.project_albedo &= projection_levels is None or level in projection_levels
         prob.project_albedo &= ratios[level] <= projection_max_ratio
         prob.hold_across_waves = hold_from_level is not None and level >= hold_from_level
-        if bound_start_albedo and fit_albedo and level >= fit_min_level:
-            albedo = prob.bounded_albedo(albedo)
-        steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
-        cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
-        if large_level_cap is not None and level > 0 and img.size >= large_level_cap[0]:
-            steps, cg = min(steps, large_level_cap[1]), min(cg, large_level_cap[2])
-        z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level,
-                               gn_rtol, subspace_steps)
-        return z, albedo, prob
+        return prob
+
+    def run_levels(first, last, z, albedo, prior_weight):
+        """Solve the levels `first` down to `last` from `z` (None: flat) with the
+        low-frequency prior of weight `prior_weight`; (z, albedo)."""
+        for level in range(first, last - 1, -1):
+            prob = level_problem(level, albedo, prior_weight)
+            z = np.zeros(prob.shape, _F) if z is None else _upsample(z, prob.shape)
+            if bound_start_albedo and fit_albedo and level >= fit_min_level:
+                albedo = prob.bounded_albedo(albedo)
+            steps = fine_gn if level == 0 else (mid_gn if level == 1 else coarse_gn)
+            cg = fine_cg if level == 0 else (mid_cg if level == 1 else coarse_cg)
+            if large_level_cap is not None and level > 0 and z.size >= large_level_cap[0]:
+                steps, cg = min(steps, large_level_cap[1]), min(cg, large_level_cap[2])
+            z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level, gn_rtol,
+                                   subspace_steps)
+        return z, albedo
 
     top = len(pyramid) - 1
-    check = (lowfreq_check_level is not None and lowfreq_weight > 0 and data_shape is not None)
-    check_level = min(lowfreq_check_level, top) if check else -1
-    z_start, albedo_start = z, albedo
-    for level in range(top, -1, -1):
-        z, albedo, _ = run_level(level, z, albedo, lowfreq_weight)
-        if level == check_level:
-            z_free, albedo_free = z_start, albedo_start
-            for free_level in range(top, level - 1, -1):
-                z_free, albedo_free, free = run_level(free_level, z_free, albedo_free, 0.0)
-            # Both energies without the prior (`free` has none).
-            worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
-            if worse and albedo_free <= lowfreq_reject_albedo * albedo:
-                z, albedo, lowfreq_weight = z_free, albedo_free, 0.0
+    first = top
+    if lowfreq_check_level is not None and lowfreq_weight > 0 and data_shape is not None:
+        # The levels down to the check level with the prior and, side by side in a forked
+        # worker, without it (the same heights as one after the other).
+        check_level = min(lowfreq_check_level, top)
+        (z, albedo), (z_free, albedo_free) = call_beside(
+            functools.partial(run_levels, top, check_level, z, albedo, lowfreq_weight),
+            functools.partial(run_levels, top, check_level, z, albedo, 0.0), CHECK_PROCESSES)
+        # Both energies without the prior.
+        free = level_problem(check_level, albedo_free, 0.0)
+        worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
+        if worse and albedo_free <= lowfreq_reject_albedo * albedo:
+            z, albedo, lowfreq_weight = z_free, albedo_free, 0.0
+        first = check_level - 1
+    z, albedo = run_levels(first, 0, z, albedo, lowfreq_weight)
     return z - z.mean(), albedo
 
 

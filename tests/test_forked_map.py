@@ -1,5 +1,5 @@
-"""forked_map: the same results, in order, whether the calls run in forked workers or in the
-calling process (one conformance suite for both)."""
+"""forked_map and call_beside: the same results, in order, whether the calls run in forked
+workers or in the calling process (one conformance suite for both)."""
 from __future__ import annotations
 
 import logging
@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from haptex_compile.forked_map import forked_map, worker_count
+from haptex_compile.forked_map import call_beside, forked_map, worker_count
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers are used on Linux only")
 MODES = [1, pytest.param(2, marks=linux)]
@@ -76,3 +76,47 @@ def test_a_worker_that_dies_leaves_the_calls_to_the_caller(caplog, monkeypatch):
         assert map_([(1,), (2,), (3,)]) == [2, 4, 6]
         assert map_([(4,), (5,)]) == [8, 10]  # no pool any more: in this process
     assert "worker processes failed" in caplog.text
+
+
+@pytest.mark.parametrize("processes", MODES)
+def test_call_beside_returns_both_results_as_direct_calls(processes):
+    data = np.random.default_rng(1).random((300, 300))  # a result larger than a pipe's buffer
+    here, there = call_beside(lambda: float(data.sum()), lambda: data * 2.0, processes)
+    assert here == float(data.sum())
+    assert np.array_equal(there, data * 2.0)
+
+
+@pytest.mark.parametrize("processes", MODES)
+def test_call_beside_hands_an_error_of_either_call_to_the_caller(processes):
+    def fail():
+        raise ValueError("there")
+
+    with pytest.raises(ValueError, match="there"):
+        call_beside(lambda: 1, fail, processes)
+    with pytest.raises(KeyError):
+        call_beside(lambda: {}["missing"], lambda: 1, processes)
+
+
+@linux
+def test_call_beside_runs_there_in_a_child_that_forks_no_further():
+    parent = os.getpid()
+    (pid_here, _), (pid_there, count, ignored) = call_beside(
+        lambda: (os.getpid(), worker_count()),
+        lambda: (os.getpid(), worker_count(), signal.getsignal(signal.SIGINT) == signal.SIG_IGN), 2)
+    assert pid_here == parent and pid_there != parent
+    assert count == 1 and ignored
+    assert call_beside(os.getpid, os.getpid, 1) == (parent, parent)
+
+
+@linux
+def test_call_beside_runs_there_here_when_the_child_dies(caplog, monkeypatch):
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    parent = os.getpid()
+
+    def there():
+        if os.getpid() != parent:
+            os._exit(3)  # killed, as by the kernel's out-of-memory killer
+        return "here"
+
+    assert call_beside(lambda: 1, there, 2) == (1, "here")
+    assert "worker process failed" in caplog.text

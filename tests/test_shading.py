@@ -3,6 +3,7 @@ stability and physical scale. Ground truth comes from haptex_compile.known_surfa
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -842,6 +843,24 @@ def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monke
     assert normalised_height_error(results["cap", default], cap) <= 0.10
     assert normalised_height_error(results["cap", np.inf], cap) >= 0.5  # the prior kept
     assert np.array_equal(results["bumps", default], results["bumps", np.inf])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers are used on Linux only")
+def test_the_flat_priors_test_gives_the_same_heights_side_by_side(monkeypatch):
+    # The test's two chains (with the prior and without it) run side by side in a forked
+    # child; one after the other in this process they must give the same heights, bit for
+    # bit, whether the prior is dropped (the sphere cap) or kept (the bumps).
+    from haptex_compile import shading_variational
+
+    light = Light(45.0, 200.0)
+    cases = ((ts.sphere_cap((128, 128), 2 * PX), 2 * PX), (ts.random_bumps((96, 128), PX, seed=4), PX))
+    for truth, px in cases:
+        img = render_lambertian(truth, px, light, 0.8)
+        heights = []
+        for processes in (2, 1):
+            monkeypatch.setattr(shading_variational, "CHECK_PROCESSES", processes)
+            heights.append(shape_from_shading(img, pixel_size_um=px, light=light, periodic=False).height)
+        assert np.array_equal(heights[0], heights[1])
 
 
 def test_low_frequency_prior_is_its_symbol_on_the_kept_waves():
