@@ -81,12 +81,13 @@ SUBGRID_DAMPING = 2.0
 # gain: a 256 px solve 66 -> 103 ms).
 PARALLEL_FFT_MIN_PIXELS = 1 << 18
 # Processes of the low-frequency prior's test (solve_variational's lowfreq_check_level): the
-# coarse levels with the prior here and, side by side, without it in a forked child (None: when
+# coarse levels without the prior here and, side by side, with it in a forked child (None: when
 # this process may use 2 CPUs or more; 1: one after the other here; see forked_map.call_beside).
 # The same heights either way. Measured in one run (16 plain images of each size, the bench's
 # surfaces and lights, light given, best of 3, alternating): 256 px 0.75 x the time, 384 px
 # 0.96, 512 px 0.92-1.00 (0.97 with the child reaped by a thread; the test's levels are at
-# most 150 px of a side, a fixed cost). The chain without the prior is the longer one.
+# most 150 px of a side, a fixed cost). The chain without the prior is the longer one and runs
+# in this process, whose caches are warm (against the other way round: 0.98-0.99 x the time).
 CHECK_PROCESSES: int | None = None
 # Waves whose low-frequency penalty is below this fraction of its peak are left out of it.
 LOWFREQ_SUPPORT = 1e-6
@@ -1212,12 +1213,12 @@ def solve_variational(
     top = len(pyramid) - 1
     first = top
     if lowfreq_check_level is not None and lowfreq_weight > 0 and data_shape is not None:
-        # The levels down to the check level with the prior and, side by side in a forked
-        # worker, without it (the same heights as one after the other).
+        # The levels down to the check level without the prior (the longer chain, here) and,
+        # side by side in a forked child, with it (the same heights as one after the other).
         check_level = min(lowfreq_check_level, top)
-        (z, albedo), (z_free, albedo_free) = call_beside(
-            functools.partial(run_levels, top, check_level, z, albedo, lowfreq_weight),
-            functools.partial(run_levels, top, check_level, z, albedo, 0.0), CHECK_PROCESSES)
+        (z_free, albedo_free), (z, albedo) = call_beside(
+            functools.partial(run_levels, top, check_level, z, albedo, 0.0),
+            functools.partial(run_levels, top, check_level, z, albedo, lowfreq_weight), CHECK_PROCESSES)
         # Both energies without the prior.
         free = level_problem(check_level, albedo_free, 0.0)
         worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
