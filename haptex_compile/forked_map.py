@@ -101,6 +101,15 @@ def forked_map(fn: Callable, processes: int | None = None) -> Iterator[Callable[
             pool.shutdown(wait=True, cancel_futures=True)
 
 
+def _reap(pid: int) -> None:
+    """Wait for child `pid` to exit (nothing to wait for if the caller's program has set
+    SIGCHLD to be ignored: the kernel reaps it)."""
+    try:
+        os.waitpid(pid, 0)
+    except ChildProcessError:
+        pass
+
+
 def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | None = None) -> tuple[T, U]:
     """``(here(), there())``, with `there` run in a forked child while this process runs
     `here` (where :func:`worker_count` of `processes` is at least 2).
@@ -154,12 +163,15 @@ def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | 
     except BaseException:
         if read_fd >= 0:
             os.close(read_fd)
-        os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:  # gone already
+            pass
+        _reap(pid)
         raise
     # The child has answered; its exit (unmapping its copy of this process) takes about as
     # long as the fork, so a thread waits for it (measured: 9 ms of a 1 s solve).
-    threading.Thread(target=os.waitpid, args=(pid, 0), name="haptex-reap", daemon=True).start()
+    threading.Thread(target=_reap, args=(pid,), name="haptex-reap", daemon=True).start()
     if not payload:  # the child died before it could answer
         LOG.warning("worker process failed; going on in this process")
         return first, there()

@@ -6,6 +6,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -120,3 +121,22 @@ def test_call_beside_runs_there_here_when_the_child_dies(caplog, monkeypatch):
 
     assert call_beside(lambda: 1, there, 2) == (1, "here")
     assert "worker process failed" in caplog.text
+
+
+@linux
+def test_call_beside_with_sigchld_ignored_still_answers(monkeypatch):
+    # A program that sets SIGCHLD to be ignored has its children reaped by the kernel: there
+    # is nothing to wait for, and no thread may fail on it.
+    failures = []
+    monkeypatch.setattr(threading, "excepthook", failures.append)
+    previous = signal.signal(signal.SIGCHLD, signal.SIG_IGN)
+    try:
+        assert call_beside(lambda: 1, lambda: 2, 2) == (1, 2)
+        with pytest.raises(KeyError):
+            call_beside(lambda: {}["missing"], lambda: 2, 2)
+        for thread in threading.enumerate():
+            if thread.name == "haptex-reap":
+                thread.join(10.0)
+    finally:
+        signal.signal(signal.SIGCHLD, previous)
+    assert failures == []
