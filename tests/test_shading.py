@@ -1057,6 +1057,9 @@ def test_coarse_levels_of_a_plain_image_hold_its_plane(monkeypatch):
     # finer levels then had to remove; with COARSE_PLANE_FACTOR the coarse levels hold it.
     import haptex_compile.shading_variational as sv
 
+    # The coarse levels with the prior run in a forked child beside their test without it:
+    # here, in this process, where the spy sees them (the same heights).
+    monkeypatch.setattr(sv, "CHECK_PROCESSES", 1)
     default = shading.COARSE_PLANE_FACTOR
     n, light = 512, Light(45.0, 200.0)
     truth = ts.random_bumps((n, n), PX, seed=5)
