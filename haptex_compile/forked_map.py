@@ -27,10 +27,10 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from typing import TypeVar
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
+from typing import TypeVar
 
 LOG = logging.getLogger("haptex.forked_map")
 T = TypeVar("T")
@@ -114,12 +114,13 @@ def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | 
     """``(here(), there())``, with `there` run in a forked child while this process runs
     `here` (where :func:`worker_count` of `processes` is at least 2).
 
-    One fork and a pipe, no pool: for two independent calls of a fraction of a second each,
-    of which the caller's own keeps its warm caches (measured: a plain image's two coarse
-    chains of the shading solver, about 20 ms of overhead). As in :func:`forked_map`, the
-    calls run one after the other where that count is 1, and `there` runs here if
-    the child cannot be started or dies; an exception raised by `there` reaches the caller.
-    `there` must be deterministic, and its result picklable.
+    One fork and a pipe, no pool: for two independent calls of a fraction of a second each
+    (a plain image's two coarse chains in the shading solver: about 20 ms of overhead, the
+    fork and the child's first writes to memory it shares with this process). `here` keeps
+    this process's warm caches: give it the longer call. As in :func:`forked_map`, the calls
+    run one after the other where that count is 1, and `there` runs here if the child cannot
+    be started or dies; an exception raised by either call reaches the caller. `there` must
+    be deterministic, and its result picklable.
     """
     if worker_count(processes) <= 1:
         return here(), there()

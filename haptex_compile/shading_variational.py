@@ -1129,7 +1129,7 @@ def solve_variational(
     lowfreq_check_level, lowfreq_reject_ratio : int or None, float
         Test the `lowfreq_weight` prior on this pyramid level (the coarsest if the pyramid
         is shorter; None = no test): the levels down to it are solved again without the
-        prior, and if the prior's result has more than `lowfreq_reject_ratio` times the
+        prior (side by side in a forked child, see ``CHECK_PROCESSES``), and if the prior's result has more than `lowfreq_reject_ratio` times the
         energy (data and thin plate, without the prior) of the result without it, the data
         contradict the prior and the solve goes on without it. A scene that is not flat
         at the image's scale (an object on a flat ground) is flattened by the prior and
@@ -1219,7 +1219,7 @@ def solve_variational(
         (z_free, albedo_free), (z, albedo) = call_beside(
             functools.partial(run_levels, top, check_level, z, albedo, 0.0),
             functools.partial(run_levels, top, check_level, z, albedo, lowfreq_weight), CHECK_PROCESSES)
-        # Both energies without the prior.
+        # Both energies without the prior (a problem without it: no albedo enters).
         free = level_problem(check_level, albedo_free, 0.0)
         worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
         if worse and albedo_free <= lowfreq_reject_albedo * albedo:

@@ -847,9 +847,9 @@ def test_flat_prior_of_plain_images_is_dropped_where_the_scene_is_not_flat(monke
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers are used on Linux only")
 def test_the_flat_priors_test_gives_the_same_heights_side_by_side(monkeypatch):
-    # The test's two chains (with the prior and without it) run side by side in a forked
-    # child; one after the other in this process they must give the same heights, bit for
-    # bit, whether the prior is dropped (the sphere cap) or kept (the bumps).
+    # The test's two chains (without the prior and with it) run side by side, the second in a
+    # forked child; one after the other in this process they must give the same heights, bit
+    # for bit, whether the prior is dropped (the sphere cap) or kept (the bumps).
     from haptex_compile import shading_variational
 
     light = Light(45.0, 200.0)
