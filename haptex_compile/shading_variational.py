@@ -83,11 +83,12 @@ PARALLEL_FFT_MIN_PIXELS = 1 << 18
 # Processes of the low-frequency prior's test (solve_variational's lowfreq_check_level): the
 # coarse levels without the prior here and, side by side, with it in a forked child (None: when
 # this process may use 2 CPUs or more; 1: one after the other here; see forked_map.call_beside).
-# The same heights either way. Measured in one run (16 plain images of each size, the bench's
-# surfaces and lights, light given, best of 3, alternating): 256 px 0.75 x the time, 384 px
-# 0.96, 512 px 0.92-1.00 (0.97 with the child reaped by a thread; the test's levels are at
-# most 150 px of a side, a fixed cost). The chain without the prior is the longer one and runs
-# in this process, whose caches are warm (against the other way round: 0.98-0.99 x the time).
+# The same heights either way. Measured against one after the other in one run each (16 plain
+# images of each size, the bench's surfaces and lights, light given, best of 3, alternating):
+# 256 px 0.73-0.75 x the time, 384 px 0.96, 512 px 0.93-0.97, 1024 px 0.99 (best of 2; the
+# test's levels are at most 150 px of a side, a fixed cost). The chain without the prior is the
+# longer one and runs in this process, whose caches are warm (against the other way round:
+# 0.98-0.99 x the time).
 CHECK_PROCESSES: int | None = None
 # Waves whose low-frequency penalty is below this fraction of its peak are left out of it.
 LOWFREQ_SUPPORT = 1e-6
