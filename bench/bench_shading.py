@@ -40,7 +40,7 @@ from unittest import mock
 import numpy as np
 
 from haptex_compile import known_surfaces as ts
-from haptex_compile import malloc_policy, shading, shading_light
+from haptex_compile import malloc_policy, shading, shading_light, shading_variational
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.forked_map import worker_count
 from haptex_compile.sources import remove_plane
@@ -1199,6 +1199,15 @@ def run(quick: bool = False) -> str:
               "| --- | --- | --- | --- | --- | --- | --- | --- |",
               *_plain_timing_rows((tn,) if quick else (tn // 2, 3 * tn // 4, tn),
                                   repeats=1 if quick else 2)]
+    lines += ["", "Plain images, the flat-on-average prior's test (its coarse levels solved with the prior"
+              " and without it): the two chains side by side, the one with the prior in a forked child"
+              " (default, `forked_map.call_beside`), against one after the other in this process"
+              " (baseline, same run: `shading_variational.CHECK_PROCESSES = 1`). The 16 solves of each"
+              " side as above, light given, best of each solve's runs in alternating order: summed"
+              " seconds, and whether the heights are the same bit for bit:", "",
+              "| side (px) | side by side: summed s | one after the other: summed s | time ratio | same heights |",
+              "| --- | --- | --- | --- | --- |",
+              *_check_side_by_side_rows((256,) if quick else (256, 512), repeats=1 if quick else 3)]
     lines += ["", f"The same 16 solves at {tn} x {tn} px, light given, with glibc's default malloc and with"
               " the solver's (`haptex_compile.malloc_policy`: freed blocks kept for reuse rather than"
               " handed back and faulted in again in the next CG iteration), each in a fresh process:", "",
@@ -1285,6 +1294,29 @@ def _plain_timing_rows(sides, repeats: int) -> list[str]:
                 error[k] += normalised_height_error(res.height, truth)
         rows.append(f"| {n} | " + " | ".join(f"{total[k]:.2f} | {slowest[k]:.2f} | {error[k]:.3f}" for k in range(2))
                     + f" | {total[0] / total[1]:.2f} |")
+    return rows
+
+
+def _check_side_by_side_rows(sides, repeats: int) -> list[str]:
+    """For each side: the 16 plain-image solves of :func:`_timing_cases` with the prior's test
+    side by side (``shading_variational.CHECK_PROCESSES`` None) and one after the other (1),
+    best of `repeats` runs each in alternating order: summed seconds, their ratio, and whether
+    every solve gave the same heights both ways."""
+    variants = (None, 1)
+    rows = []
+    for n in sides:
+        total, same = np.zeros(2), True
+        for i, (_, truth, light, images) in enumerate(_timing_cases(_surfaces(n))):
+            best, heights = [np.inf, np.inf], [None, None]
+            for rep in range(repeats):
+                for k in ((0, 1) if (i + rep) % 2 == 0 else (1, 0)):
+                    with mock.patch.object(shading_variational, "CHECK_PROCESSES", variants[k]):
+                        t, res = _best_solve(images[False], light, False, 1)
+                    best[k] = min(best[k], t)
+                    heights[k] = res.height
+            total += best
+            same &= bool(np.array_equal(heights[0], heights[1]))
+        rows.append(f"| {n} | {total[0]:.2f} | {total[1]:.2f} | {total[0] / total[1]:.2f} | {'yes' if same else 'NO'} |")
     return rows
 
 
