@@ -1306,7 +1306,7 @@ def _check_side_by_side_rows(sides, repeats: int) -> list[str]:
     rows = []
     for n in sides:
         total, same = np.zeros(2), True
-        for i, (_, truth, light, images) in enumerate(_timing_cases(_surfaces(n))):
+        for i, (_, _, light, images) in enumerate(_timing_cases(_surfaces(n))):
             best, heights = [np.inf, np.inf], [None, None]
             for rep in range(repeats):
                 for k in ((0, 1) if (i + rep) % 2 == 0 else (1, 0)):
