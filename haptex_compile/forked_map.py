@@ -110,6 +110,45 @@ def _reap(pid: int) -> None:
         pass
 
 
+def _fork_child(there: Callable[[], object]) -> tuple[int, int] | None:
+    """Fork a child that runs `there` and sends ``(True, result)`` or ``(False, exception)``
+    down a pipe, pickled, then exits; (its pid, the pipe's read end), or None (with a warning)
+    if no child could be started."""
+    try:
+        read_fd, write_fd = os.pipe()
+    except OSError as exc:
+        LOG.warning("no pipe for a worker process (%s); going on in this process", exc)
+        return None
+    try:
+        pid = os.fork()
+    except OSError as exc:
+        os.close(read_fd)
+        os.close(write_fd)
+        LOG.warning("worker process could not start (%s); going on in this process", exc)
+        return None
+    if pid:
+        os.close(write_fd)
+        return pid, read_fd
+    global _IN_CHILD
+    _IN_CHILD = True  # it forks no further
+    status = 1
+    try:
+        os.close(read_fd)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
+        try:
+            payload = pickle.dumps((True, there()), pickle.HIGHEST_PROTOCOL)
+        except BaseException as exc:  # noqa: BLE001 - handed to the parent
+            try:
+                payload = pickle.dumps((False, exc), pickle.HIGHEST_PROTOCOL)
+            except Exception:  # an exception that does not pickle
+                payload = pickle.dumps((False, RuntimeError(f"{type(exc).__name__}: {exc}")))
+        with os.fdopen(write_fd, "wb") as out:
+            out.write(payload)
+        status = 0
+    finally:
+        os._exit(status)  # no atexit handlers, no flushing of the parent's buffers
+
+
 def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | None = None) -> tuple[T, U]:
     """``(here(), there())``, with `there` run in a forked child while this process runs
     `here` (where :func:`worker_count` of `processes` is at least 2).
@@ -122,54 +161,21 @@ def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | 
     be started or dies; an exception raised by either call reaches the caller. `there` must
     be deterministic, and its result picklable.
     """
-    if worker_count(processes) <= 1:
+    child = _fork_child(there) if worker_count(processes) > 1 else None
+    if child is None:
         return here(), there()
-    try:
-        read_fd, write_fd = os.pipe()
-    except OSError as exc:
-        LOG.warning("no pipe for a worker process (%s); going on in this process", exc)
-        return here(), there()
-    try:
-        pid = os.fork()
-    except OSError as exc:
-        os.close(read_fd)
-        os.close(write_fd)
-        LOG.warning("worker process could not start (%s); going on in this process", exc)
-        return here(), there()
-    if pid == 0:  # the child: its result (or its exception) down the pipe, then gone
-        global _IN_CHILD
-        _IN_CHILD = True
-        status = 1
+    pid, read_fd = child
+    with os.fdopen(read_fd, "rb") as src:
         try:
-            os.close(read_fd)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
+            first = here()
+            payload = src.read()  # read before waiting: the result may outgrow the pipe
+        except BaseException:
             try:
-                payload = pickle.dumps((True, there()), pickle.HIGHEST_PROTOCOL)
-            except BaseException as exc:  # noqa: BLE001 - handed to the parent
-                try:
-                    payload = pickle.dumps((False, exc), pickle.HIGHEST_PROTOCOL)
-                except Exception:  # an exception that does not pickle
-                    payload = pickle.dumps((False, RuntimeError(f"{type(exc).__name__}: {exc}")))
-            with os.fdopen(write_fd, "wb") as out:
-                out.write(payload)
-            status = 0
-        finally:
-            os._exit(status)  # no atexit handlers, no flushing of the parent's buffers
-    os.close(write_fd)
-    try:
-        first = here()
-        with os.fdopen(read_fd, "rb") as src:  # read before waiting: the result may outgrow the pipe
-            read_fd = -1
-            payload = src.read()
-    except BaseException:
-        if read_fd >= 0:
-            os.close(read_fd)
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:  # gone already
-            pass
-        _reap(pid)
-        raise
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:  # gone already
+                pass
+            _reap(pid)
+            raise
     # The child has answered; its exit (unmapping its copy of this process) takes about as
     # long as the fork, so a thread waits for it (measured: 9 ms of a 1 s solve).
     threading.Thread(target=_reap, args=(pid,), name="haptex-reap", daemon=True).start()

@@ -1130,12 +1130,12 @@ def solve_variational(
     lowfreq_check_level, lowfreq_reject_ratio : int or None, float
         Test the `lowfreq_weight` prior on this pyramid level (the coarsest if the pyramid
         is shorter; None = no test): the levels down to it are solved again without the
-        prior (side by side in a forked child, see ``CHECK_PROCESSES``), and if the prior's result has more than `lowfreq_reject_ratio` times the
-        energy (data and thin plate, without the prior) of the result without it, the data
-        contradict the prior and the solve goes on without it. A scene that is not flat
-        at the image's scale (an object on a flat ground) is flattened by the prior and
-        its shading then fits badly; a texture that the prior suits fits about as well with
-        it (see ``shading.LOWFREQ_REJECT_RATIO``).
+        prior (side by side, see ``CHECK_PROCESSES``), and if the prior's result has more
+        than `lowfreq_reject_ratio` times the energy (data and thin plate, without the prior)
+        of the result without it, the data contradict the prior and the solve goes on
+        without it. A scene that is not flat at the image's scale (an object on a flat
+        ground) is flattened by the prior and its shading then fits badly; a texture that the
+        prior suits fits about as well with it (see ``shading.LOWFREQ_REJECT_RATIO``).
     lowfreq_reject_albedo : float
         The prior is dropped only if, as well, the albedo without it is at most this factor
         times the albedo with it: a result that fits better under a much brighter albedo is a
