@@ -357,9 +357,10 @@ class _LowFreqOperator:
 
 
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
-    """The :class:`_PlaneTerm` of data weights `w`; None where the data span no area (a
-    coarse level of a mostly masked or shadowed image: a few pixels in one row or column),
-    whose plane is undefined."""
+    """The :class:`_PlaneTerm` of weights `w` (those within 1e-5 of 1 count as 1: a coarse
+    level's area averages of ones); None where they span no area (a coarse level of a mostly
+    masked image: a few pixels in one row or column), whose plane is undefined."""
+    w = np.where(np.abs(w - 1) <= 1e-5, _F(1), w).astype(_F, copy=False)
     wsum = float(w.sum())
     if wsum <= 0:
         return None
@@ -389,7 +390,8 @@ class _Problem:
     """One resolution level: image, weights, light, regulariser and the FFT preconditioner."""
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None,
-                 bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0):
+                 bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0,
+                 plane_support=None):
         # (not copied where they are contiguous float32 already: a level's arrays are only read)
         self.img = np.ascontiguousarray(image, dtype=_F)
         self.w = np.ascontiguousarray(weight, dtype=_F)
@@ -457,13 +459,15 @@ class _Problem:
             # The preconditioner and the operator see the kept waves (the operator on the
             # rectangle of rows and columns that holds them: see _LowFreqOperator).
             self.lf = np.where(keep, lf, 0.0).astype(_F)
-            # The slopes of the least-squares plane through the data (data-weighted): a tilt
-            # along the light is traded against the albedo, and on the periodic domain it
-            # costs only its return in the margin, which the prior's few long waves hardly
-            # see. Penalised as lowfreq_plane x mu x (data weight) x |slope|² / 2: a rank-two
-            # term of this operator. (Not the mean of the differences: that telescopes to the
-            # edge pixels, which then bend to meet it.)
-            plane = _plane_term(self.w, lowfreq_plane * mu) if lowfreq_plane > 0 else None
+            # The slopes of the least-squares plane through the image (weighted by
+            # `plane_support`, by default the data weights): a tilt along the light is traded
+            # against the albedo, and on the periodic domain it costs only its return in the
+            # margin, which the prior's few long waves hardly see. Penalised as
+            # lowfreq_plane x mu x (support) x |slope|² / 2: a rank-two term of this
+            # operator. (Not the mean of the differences: that telescopes to the edge pixels,
+            # which then bend to meet it.)
+            support = self.w if plane_support is None else plane_support
+            plane = _plane_term(support, lowfreq_plane * mu) if lowfreq_plane > 0 else None
             self._lf = _LowFreqOperator(self.lf, ky, kx, (rows, cols), plane)
 
     def lowfreq(self, v):
@@ -881,6 +885,14 @@ def _area_half(a):
     return cv2.resize(a.astype(np.float32), size, interpolation=cv2.INTER_AREA)
 
 
+def _data_region(shape: tuple[int, int], data_shape: tuple[int, int]) -> np.ndarray:
+    """Ones on the data region (`data_shape`, in the top-left corner) of a domain of
+    `shape`, zeros in the margin (float32)."""
+    region = np.zeros(shape, _F)
+    region[: data_shape[0], : data_shape[1]] = 1.0
+    return region
+
+
 def _upsample(z, shape):
     """Upsample a height in pixel units to `shape` (values scale with the pixel ratio)."""
     factor = shape[1] / z.shape[1]
@@ -1012,7 +1024,8 @@ def solve_variational(
         Gauss-Newton step's elementwise work (in blocks of rows; the same heights as one
         thread, bit for bit).
     data_shape : (int, int), optional
-        Size of the data region (non-periodic images embedded in a larger domain).
+        Size of the data region (non-periodic images embedded in a larger domain, at its
+        top-left corner).
     lowfreq_weight : float
         Weight (relative to ``albedo²``) of the penalty on slopes at wavelengths longer than
         the data region; 0 = none. Non-periodic images need it: the fabric lies flat on
@@ -1029,8 +1042,9 @@ def solve_variational(
         waves is the larger of the two.
     lowfreq_plane_weight : float
         With `lowfreq_weight`: also penalise the slopes (x and y) of the least-squares plane
-        through the data region, ``lowfreq_plane_weight x lowfreq_weight x albedo² x N x
-        |slope|² / 2`` on a level whose data weights sum to N (0 = off).
+        through the data region (all its pixels, masked and censored ones included),
+        ``lowfreq_plane_weight x lowfreq_weight x albedo² x N x |slope|² / 2`` on a level
+        where it covers N pixels (0 = off).
     lowfreq_plane_coarse, lowfreq_plane_coarse_level : float, int
         That weight is multiplied by `lowfreq_plane_coarse` on pyramid level
         `lowfreq_plane_coarse_level` (0 = full resolution) and coarser ones: a large factor
@@ -1161,6 +1175,15 @@ def solve_variational(
         pyramid.append((*_downsample(img, w), _area_half(d), _area_half(b)))
         squares, _ = _downsample(squares, w)
         ratios.append(_subpixel_variance_ratio(pyramid[-1][0], squares, pyramid[-1][1]))
+    # The data region on each level (area fractions): the prior's plane is fitted over it,
+    # masked and shadowed pixels included (their heights belong to the surface as much), and
+    # where it is a box of ones, as on an image's finest levels, the plane term works on row
+    # profiles; over data weights with holes it was a pass over the level per CG iteration.
+    regions = None
+    if data_shape is not None:
+        regions = [_data_region(image.shape, data_shape)]
+        while len(regions) < len(pyramid):
+            regions.append(_area_half(regions[-1]))
     # The thin plate's weight on each level (continuation: smooth first, detail last); beyond
     # the half-resolution level it grows by `smooth_lam_growth` on smooth shading.
     smooth = smooth_lam_growth is not None and len(ratios) > 1 and ratios[1] <= smooth_ratio_max
@@ -1186,6 +1209,7 @@ def solve_variational(
             img, w, light_vec, level_lams[level], workers, lowfreq, d, b,
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
             lowfreq_plane=lowfreq_plane_weight * (lowfreq_plane_coarse if level >= lowfreq_plane_coarse_level else 1.0),
+            plane_support=None if regions is None else regions[level],
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
         prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
@@ -1246,6 +1270,7 @@ def energy(image, weight, light_vec, albedo, z, lam=1e-4, *, dark=None, bright=N
     :func:`solve_variational` with those parameters, its weights relative to this `albedo`²."""
     lowfreq, spectral = _level_prior(1.0, albedo, data_shape, lowfreq_weight * lowfreq_fine_factor, lowfreq_cycles,
                                      lowfreq_power, lowfreq_power_weight)
+    region = None if data_shape is None else _data_region(image.shape, data_shape)
     prob = _Problem(image, weight, light_vec, lam, 1, lowfreq, dark, bright, albedo_bound=False,
-                    lowfreq_spectral=spectral, lowfreq_plane=lowfreq_plane_weight)
+                    lowfreq_spectral=spectral, lowfreq_plane=lowfreq_plane_weight, plane_support=region)
     return prob.energy(z.astype(_F), albedo)

@@ -936,6 +936,33 @@ def test_the_prior_charges_a_tilt_of_the_data_region_and_nothing_in_the_margin()
             assert extra == pytest.approx(want, rel=1e-4)
 
 
+def test_the_plane_is_fitted_over_the_whole_data_region_holes_included():
+    # On a plain image's domain the plane term charges a tilt of the data region
+    # weight x mu x N x |slope|² / 2 with N the region's pixels, masked and shadowed ones
+    # included (their heights are the surface's too): the data weights' holes change nothing.
+    from haptex_compile.shading_variational import energy
+
+    rows, cols, data = 150, 120, (110, 90)
+    w = np.zeros((rows, cols), np.float32)
+    w[: data[0], : data[1]] = 1.0
+    dark = np.zeros_like(w)
+    w[40:50, 30:45] = 0.0  # masked
+    w[70:74, 10:20] = 0.0
+    dark[70:74, 10:20] = 1.0  # an attached shadow
+    img = np.full((rows, cols), 0.5, np.float32)
+    light, albedo, plane_weight, prior_weight = Light(40.0, 200.0).vector, 0.8, 0.1, 0.3
+    yy, xx = np.mgrid[:rows, :cols]
+    region = (yy < data[0]) & (xx < data[1])
+    off_data = np.where(region, 0.0, np.random.default_rng(2).standard_normal((rows, cols)))
+    for sx, sy in ((0.3, 0.0), (0.0, -0.2), (0.1, 0.25)):
+        z = np.where(region, sx * xx + sy * yy + 3.0, off_data).astype(np.float32)
+        with_plane, without = (energy(img, w, light, albedo, z, dark=dark, data_shape=data,
+                                      lowfreq_weight=prior_weight, lowfreq_plane_weight=pw)
+                               for pw in (plane_weight, 0.0))
+        want = 0.5 * plane_weight * prior_weight * albedo**2 * data[0] * data[1] * (sx * sx + sy * sy)
+        assert with_plane - without == pytest.approx(want, rel=1e-4)
+
+
 def test_on_a_large_level_the_prior_charges_the_same_tilt():
     # On a level of two threads of rows, the plane term charges a tilt of the data region the
     # same weight x mu x N x |slope|² / 2, whatever the margin holds.
