@@ -92,6 +92,9 @@ PARALLEL_FFT_MIN_PIXELS = 1 << 18
 CHECK_PROCESSES: int | None = None
 # Waves whose low-frequency penalty is below this fraction of its peak are left out of it.
 LOWFREQ_SUPPORT = 1e-6
+# An axis's factor of the prior's low-pass below which its waves are not computed (see
+# _Problem.__init__).
+_PHI_FLOOR = 1e-18
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 
@@ -357,15 +360,17 @@ class _LowFreqOperator:
 
 
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
-    """The :class:`_PlaneTerm` of weights `w` (those within 1e-5 of 1 count as 1: a coarse
-    level's area averages of ones); None where they span no area (a coarse level of a mostly
-    masked image: a few pixels in one row or column), whose plane is undefined."""
-    w = np.where(np.abs(w - 1) <= 1e-5, _F(1), w).astype(_F, copy=False)
-    wsum = float(w.sum())
+    """The :class:`_PlaneTerm` of weights `w`; None where they span no area (a coarse level
+    of a mostly masked image: a few pixels in one row or column), whose plane is undefined.
+    Weights within 1e-5 of 1 on a top-left box (a coarse level's area averages of ones) and 0
+    elsewhere count as that box of ones."""
+    r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
+    inside = w[:r1, :c1]
+    box = (r1 * c1 > 0 and np.count_nonzero(w) == r1 * c1
+           and float(inside.min()) >= 1 - 1e-5 and float(inside.max()) <= 1 + 1e-5)
+    wsum = float(r1 * c1) if box else float(w.sum())
     if wsum <= 0:
         return None
-    r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
-    box = wsum == r1 * c1 and bool(np.all(w[:r1, :c1] == 1))
     if box:
         # Ones on the top-left box: the centred ramps are a row and a column, and their
         # moments are sums over them (a 600 px level's term: 26 -> 1 ms).
@@ -433,32 +438,35 @@ class _Problem:
         self.lf = None
         if lowfreq is not None:
             mu, w0 = lowfreq
-            phi = np.exp(-(wx**2 + wy**2) / (w0 * w0))
-            # Slope across the light only: along it, the linear shading term fixes the slope.
-            c = _across(self.light)
-            if c is None:
-                across = np.sin(wx) ** 2 + np.sin(wy) ** 2
-            else:
-                across = (c[0] * np.sin(wx) + c[1] * np.sin(wy)) ** 2
-            lf = mu * phi * across
-            # The penalty lives on a few waves (phi is below LOWFREQ_SUPPORT of its peak
-            # beyond about 4 cycles per data region), which the solver keeps as coefficients
-            # (see _LowFreqOperator).
-            keep = lf > LOWFREQ_SUPPORT * float(lf.max())
+            limit = np.inf
             if lowfreq_spectral is not None:
                 # The image's own long-wave power tightens the prior (shading_prior), on the
-                # waves of fewer cycles than its table holds (0 on the others: not computed
-                # there, 1152 px level: 40 -> 1 ms).
+                # waves of fewer cycles than its table holds (0 on the others).
                 limit = 2 * np.pi * (len(lowfreq_spectral["power"]) - 0.5) / lowfreq_spectral["side_px"]
-                ry, rx = np.flatnonzero(np.abs(wy[:, 0]) < limit), np.flatnonzero(np.abs(wx[0]) < limit)
+            # The penalty lives on a few waves (phi is below LOWFREQ_SUPPORT of its peak
+            # beyond about 4 cycles per data region), which the solver keeps as coefficients
+            # (see _LowFreqOperator). It is computed on the rows and columns where an axis's
+            # factor of phi reaches _PHI_FLOOR (or the spectral prior has a table): beyond
+            # them lf < 2 mu _PHI_FLOOR, which is checked to lie below the kept ones (else
+            # the whole level). A 1200 px level's grid took 20 ms.
+            ry, rx = (np.flatnonzero((np.exp(-(w / w0) ** 2) >= _PHI_FLOOR) | (np.abs(w) < limit))
+                      for w in (wy[:, 0], wx[0]))
+            lf, keep, across = self._lowfreq_symbol(wx[:, rx], wy[ry], mu, w0)
+            if not 4 * mu * _PHI_FLOOR <= LOWFREQ_SUPPORT * float(lf.max()):
+                ry, rx = np.arange(rows), np.arange(wx.shape[1])
+                lf, keep, across = self._lowfreq_symbol(wx, wy, mu, w0)
+            if lowfreq_spectral is not None:
+                iy, ix = np.flatnonzero(np.abs(wy[ry, 0]) < limit), np.flatnonzero(np.abs(wx[0, rx]) < limit)
                 spectral = np.zeros(lf.shape)
-                spectral[np.ix_(ry, rx)] = spectral_symbol(wx[:, rx], wy[ry], across[np.ix_(ry, rx)], **lowfreq_spectral)
+                spectral[np.ix_(iy, ix)] = spectral_symbol(wx[:, rx[ix]], wy[ry[iy]], across[np.ix_(iy, ix)],
+                                                           **lowfreq_spectral)
                 lf = np.maximum(np.where(keep, lf, 0.0), spectral)
                 keep |= spectral > 0
-            ky, kx = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
             # The preconditioner and the operator see the kept waves (the operator on the
             # rectangle of rows and columns that holds them: see _LowFreqOperator).
-            self.lf = np.where(keep, lf, 0.0).astype(_F)
+            self.lf = np.zeros((rows, wx.shape[1]), _F)
+            self.lf[np.ix_(ry, rx)] = np.where(keep, lf, 0.0)
+            ky, kx = ry[keep.any(axis=1)], rx[keep.any(axis=0)]
             # The slopes of the least-squares plane through the image (weighted by
             # `plane_support`, by default the data weights): a tilt along the light is traded
             # against the albedo, and on the periodic domain it costs only its return in the
@@ -469,6 +477,20 @@ class _Problem:
             support = self.w if plane_support is None else plane_support
             plane = _plane_term(support, lowfreq_plane * mu) if lowfreq_plane > 0 else None
             self._lf = _LowFreqOperator(self.lf, ky, kx, (rows, cols), plane)
+
+    def _lowfreq_symbol(self, wx, wy, mu, w0):
+        """The flat-on-average prior's symbol ``mu phi |slope across the light|²`` on the
+        grid of angular frequencies `wx`, `wy` (broadcast), the waves kept (above
+        ``LOWFREQ_SUPPORT`` of its peak) and the squared slope across the light."""
+        phi = np.exp(-(wx**2 + wy**2) / (w0 * w0))
+        # Slope across the light only: along it, the linear shading term fixes the slope.
+        c = _across(self.light)
+        if c is None:
+            across = np.sin(wx) ** 2 + np.sin(wy) ** 2
+        else:
+            across = (c[0] * np.sin(wx) + c[1] * np.sin(wy)) ** 2
+        lf = mu * phi * across
+        return lf, lf > LOWFREQ_SUPPORT * float(lf.max()), across
 
     def lowfreq(self, v):
         """The low-frequency penalty's operator applied to `v` (its symbol on the kept waves
