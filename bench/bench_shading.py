@@ -1162,10 +1162,18 @@ def run(quick: bool = False) -> str:
     lines += _steep_bound_rows(quick)
     lines += _well_rows(quick)
     lines += _light_search_rows(128 if quick else n, quick)
+    lines += timing_section(quick)
+    return "\n".join(lines)
+
+
+def timing_section(quick: bool = False) -> list[str]:
+    """The report's timing tables (Tsai-Shah and the solvers at 1024 px, each surface as a tile
+    and a plain image, plain images by side, the prior's test side by side, the malloc policy,
+    the light along a tile's axis): its last section, which can be rerun alone."""
     tn = 512 if quick else 1024
     times = [_timing(tn, Light(*light), repeats=1 if quick else 2) for light in TIMING_LIGHTS]
     ts_mp = times[0]["Tsai-Shah (baseline)"]
-    lines += [
+    lines = [
         "",
         f"Timing at {tn} x {tn} px (random bumps, seed 5): seconds per megapixel, best of"
         f" {1 if quick else 2}, at each light; the ratio is to Tsai-Shah (50 iterations) at the"
@@ -1224,7 +1232,7 @@ def run(quick: bool = False) -> str:
               "| side (px) | along x (45°, 0°): s per megapixel | error | 3° off (45°, 3°): s per megapixel | error |",
               "| --- | --- | --- | --- | --- |",
               *_aligned_timing_rows((256, 512) if quick else (256, 512, 1024))]
-    return "\n".join(lines)
+    return lines
 
 
 def _best_solve(img: np.ndarray, light: Light, periodic: bool, repeats: int):
