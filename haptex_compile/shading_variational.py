@@ -361,13 +361,11 @@ class _LowFreqOperator:
 
 def _plane_term(w: np.ndarray, weight: float) -> _PlaneTerm | None:
     """The :class:`_PlaneTerm` of weights `w`; None where they span no area (a coarse level
-    of a mostly masked image: a few pixels in one row or column), whose plane is undefined.
-    Weights within 1e-5 of 1 on a top-left box (a coarse level's area averages of ones) and 0
-    elsewhere count as that box of ones."""
+    of a mostly masked image: a few pixels in one row or column), whose plane is undefined."""
     r1, c1 = (int(np.count_nonzero(w.any(axis=k))) for k in (1, 0))
     inside = w[:r1, :c1]
-    box = (r1 * c1 > 0 and np.count_nonzero(w) == r1 * c1
-           and float(inside.min()) >= 1 - 1e-5 and float(inside.max()) <= 1 + 1e-5)
+    # Ones on a top-left box and zeros elsewhere (tested by reductions, not a pass over a copy).
+    box = r1 * c1 > 0 and np.count_nonzero(w) == r1 * c1 and float(inside.min()) == float(inside.max()) == 1.0
     wsum = float(r1 * c1) if box else float(w.sum())
     if wsum <= 0:
         return None
@@ -1243,7 +1241,7 @@ def solve_variational(
 
     def run_levels(first, last, z, albedo, prior_weight):
         """Solve the levels `first` down to `last` from `z` (None: flat) with the
-        low-frequency prior of weight `prior_weight`; (z, albedo)."""
+        low-frequency prior of weight `prior_weight`; (z, albedo, the last level's problem)."""
         for level in range(first, last - 1, -1):
             prob = level_problem(level, albedo, prior_weight)
             z = np.zeros(prob.shape, _F) if z is None else _upsample(z, prob.shape)
@@ -1255,7 +1253,7 @@ def solve_variational(
                 steps, cg = min(steps, large_level_cap[1]), min(cg, large_level_cap[2])
             z, albedo = prob.solve(z, albedo, steps, cg, tol, fit_albedo and level >= fit_min_level, gn_rtol,
                                    subspace_steps)
-        return z, albedo
+        return z, albedo, prob
 
     top = len(pyramid) - 1
     first = top
@@ -1263,16 +1261,15 @@ def solve_variational(
         # The levels down to the check level without the prior (the longer chain, here) and,
         # side by side in a forked child, with it (the same heights as one after the other).
         check_level = min(lowfreq_check_level, top)
-        (z_free, albedo_free), (z, albedo) = call_beside(
+        (z_free, albedo_free, free), (z, albedo) = call_beside(
             functools.partial(run_levels, top, check_level, z, albedo, 0.0),
-            functools.partial(run_levels, top, check_level, z, albedo, lowfreq_weight), CHECK_PROCESSES)
-        # Both energies without the prior (a problem without it: no albedo enters).
-        free = level_problem(check_level, albedo_free, 0.0)
+            lambda: run_levels(top, check_level, z, albedo, lowfreq_weight)[:2], CHECK_PROCESSES)
+        # Both energies without the prior (`free`, the last problem without it, has none).
         worse = free.energy(z, albedo) > lowfreq_reject_ratio * free.energy(z_free, albedo_free)
         if worse and albedo_free <= lowfreq_reject_albedo * albedo:
             z, albedo, lowfreq_weight = z_free, albedo_free, 0.0
         first = check_level - 1
-    z, albedo = run_levels(first, 0, z, albedo, lowfreq_weight)
+    z, albedo, _ = run_levels(first, 0, z, albedo, lowfreq_weight)
     return z - z.mean(), albedo
 
 
