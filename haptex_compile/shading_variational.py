@@ -1241,7 +1241,9 @@ def solve_variational(
 
     def run_levels(first, last, z, albedo, prior_weight):
         """Solve the levels `first` down to `last` from `z` (None: flat) with the
-        low-frequency prior of weight `prior_weight`; (z, albedo, the last level's problem)."""
+        low-frequency prior of weight `prior_weight`; (z, albedo, the last level's problem, None
+        when there is no level to solve: a check level that is the finest)."""
+        prob = None
         for level in range(first, last - 1, -1):
             prob = level_problem(level, albedo, prior_weight)
             z = np.zeros(prob.shape, _F) if z is None else _upsample(z, prob.shape)

@@ -1158,6 +1158,20 @@ def test_a_masked_plain_image_with_attached_shadows_is_solved():
     assert normalised_height_error(res.height, tile[crop]) < 0.2
 
 
+@pytest.mark.parametrize("side", [4, 5, 7])
+def test_a_plain_image_of_a_few_pixels_is_solved(side):
+    # Its domain has one pyramid level, which is the flat prior's check level too: nothing is
+    # left to solve after the check (this raised UnboundLocalError at e44aa9e). A Gaussian bump
+    # lit from the side must come back as a bump: heights correlated with the true ones.
+    y, x = np.mgrid[:side, :side] - (side - 1) / 2
+    bump = 40.0 * np.exp(-(x**2 + y**2) / (2 * (side / 4) ** 2))
+    light = Light(45.0, 30.0)
+    res = shape_from_shading(render_lambertian(bump, PX, light, 0.8), pixel_size_um=PX, light=light,
+                             periodic=False)
+    assert res.height.shape == (side, side) and np.all(np.isfinite(res.height))
+    assert np.corrcoef(res.height.ravel(), bump.ravel())[0, 1] > 0.5
+
+
 def test_a_plain_texture_lit_along_the_image_axis_is_not_tilted():
     # Light along x: a tilt of the image along the light dims it uniformly, which the albedo
     # undoes. A 371 x 355 crop of random bumps came back tilted (mean slope along the light
