@@ -862,9 +862,10 @@ def line_offset_section(n: int = 256, quick: bool = False) -> list[str]:
         "",
         f"Random bumps as plain images ({n} px, seeds as above), light given: where the default's error"
         " comes from. With free edges, the shading leaves each line along the light an offset that it"
-        " fixes only through the slope across the light, which enters the shading only through its square (the"
-        " normal's length; more under a low light; on a tile a line wraps round and goes on instead). The share of the default's"
-        " residual (after the affine fit) that is the mean along each line of the light (mean over"
+        " fixes only through the slope across the light, which enters the shading only through its"
+        " square (the normal's length; more under a low light; on a tile a line wraps round and goes"
+        " on instead). The share of the default's residual (after the affine fit) that is the mean"
+        " along each line of the light (mean over"
         " the seeds, least in brackets); for scale, the error of the true heights with their line"
         f" means removed, all of them and their waves of up to {LINE_MEAN_CYCLES} cycles per image side:"
         " what heights right but for those offsets, set to zero, would score:",
