@@ -187,24 +187,36 @@ def tilt_axis_difference_deg(tilt_a_deg: float, tilt_b_deg: float) -> float:
     return abs((tilt_a_deg - tilt_b_deg + 90.0) % 180.0 - 90.0)
 
 
+def affine_height_residual(height: np.ndarray, height_true: np.ndarray) -> np.ndarray:
+    """What is left of the true heights after the best affine fit ``h_true ~ a h + b``:
+    ``h_true - mean - a (h - mean(h))`` (a = 0 for a flat `height`), shaped like
+    `height_true`."""
+    t = np.asarray(height_true, dtype=float)
+    shape = t.shape
+    h = np.asarray(height, dtype=float).ravel()
+    t = t.ravel()
+    t = t - t.mean()
+    hc = h - h.mean()
+    var = float(np.dot(hc, hc))
+    a = float(np.dot(hc, t)) / var if var > 0 else 0.0
+    return (t - a * hc).reshape(shape)
+
+
 def normalised_height_error(height: np.ndarray, height_true: np.ndarray) -> float:
-    """RMS residual of the best affine fit ``h_true ~ a h + b``, over RMS(h_true - mean).
+    """RMS residual of the best affine fit ``h_true ~ a h + b``, over RMS(h_true - mean)
+    (:func:`affine_height_residual`).
 
     0 is perfect; 1 means the recovered height explains nothing. NaN entries count as failure
     (the error is then 1.0 or more).
     """
-    h = np.asarray(height, dtype=float).ravel()
     t = np.asarray(height_true, dtype=float).ravel()
     t = t - t.mean()
     denom = float(np.sqrt(np.mean(t * t)))
     if denom == 0:
         raise ValueError("height_true is flat: the normalised error is undefined")
-    if not np.all(np.isfinite(h)):
+    if not np.all(np.isfinite(np.asarray(height, dtype=float))):
         return float("inf")
-    hc = h - h.mean()
-    var = float(np.dot(hc, hc))
-    a = float(np.dot(hc, t)) / var if var > 0 else 0.0
-    return float(np.sqrt(np.mean((t - a * hc) ** 2)) / denom)
+    return float(np.sqrt(np.mean(affine_height_residual(height, height_true).ravel() ** 2)) / denom)
 
 
 def top_level(img: np.ndarray, valid: np.ndarray) -> float:
