@@ -1619,10 +1619,9 @@ def test_the_light_is_estimated_on_a_small_image_with_nan_pixels():
     h = ts.random_bumps((80, 80), PX, seed=3)
     img = render_lambertian(h, PX, Light(45.0, 200.0), 0.8, periodic=True)
     img[np.random.default_rng(0).random(img.shape) < 0.05] = np.nan
-    light, albedo = estimate_light(img)
-    assert abs(light.slant_deg - 45.0) <= 2.0
-    assert tilt_axis_difference_deg(light.tilt_deg, 200.0) <= 2.0
-    res = shape_from_shading(img, pixel_size_um=PX, periodic=True)
+    res = shape_from_shading(img, pixel_size_um=PX, periodic=True)  # the light estimated in it
+    assert abs(res.light.slant_deg - 45.0) <= 2.0
+    assert tilt_axis_difference_deg(res.light.tilt_deg, 200.0) <= 2.0
     assert normalised_height_error(res.height, h) < 0.05
 
 
@@ -1646,7 +1645,9 @@ def test_bad_parameters_raise_value_error(bumps128):
 def test_estimated_light_on_bumps_and_its_cost(bumps128):
     light = Light(45.0, 200.0)
     img = render_lambertian(bumps128, PX, light, 0.8, periodic=True)
-    est, albedo = estimate_light(img)
+    # The light estimated inside shape_from_shading (the same search as estimate_light's).
+    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
+    est, albedo = found.light, found.albedo
     # The sign of the tilt is unobservable: compare axes, and check the stated convention.
     axis_err = tilt_axis_difference_deg(est.tilt_deg, light.tilt_deg)
     assert axis_err < 3.0
@@ -1655,7 +1656,6 @@ def test_estimated_light_on_bumps_and_its_cost(bumps128):
     assert est.slant_sd_deg > 0 and est.tilt_sd_deg > 0
     assert albedo == pytest.approx(0.8, rel=0.05)
     given = shape_from_shading(img, pixel_size_um=PX, light=light, periodic=True)
-    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
     assert any("light estimated" in w for w in found.warnings)
     # Target: at most 5 points worse with the light estimated.
     e_given = normalised_height_error(given.height, bumps128)
@@ -1836,7 +1836,8 @@ def test_near_frontal_light_is_flagged_unreliable(bumps128):
     # plateau of steep lights, each with the albedo at its bound, fits as well (bumps lit at
     # 5° come out at about 36°). The estimate says so; a well-posed one does not.
     img = render_lambertian(bumps128, PX, Light(5.0, 30.0), 0.8, periodic=True)
-    est, _ = estimate_light(img)
+    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)  # the light estimated in it
+    est = found.light
     assert est.albedo_at_bound
     assert "UNRELIABLE" in shading.estimated_light_note(est)
     # Random bumps have no well below the plateau: the estimate falls back to the image
@@ -1845,7 +1846,6 @@ def test_near_frontal_light_is_flagged_unreliable(bumps128):
     stat, _ = estimate_light(img, refine=False)
     assert est.slant_deg == pytest.approx(stat.slant_deg) and est.slant_deg < 20.0
     assert abs(est.slant_deg - 5.0) <= est.slant_sd_deg and est.slant_deg + est.slant_sd_deg >= 30.0
-    found = shape_from_shading(img, pixel_size_um=PX, periodic=True)
     assert any("UNRELIABLE" in w for w in found.warnings)
     img = render_lambertian(bumps128, PX, Light(30.0, 30.0), 0.8, periodic=True)
     est, _ = estimate_light(img)
