@@ -1298,6 +1298,7 @@ def timing_section(quick: bool = False) -> list[str]:
               " handed back and faulted in again in the next CG iteration), each in a fresh process:", "",
               "| | default malloc | the solver's policy | ratio |", "| --- | --- | --- | --- |",
               *_malloc_policy_rows(tn, repeats=1 if quick else 2)]
+    lines += fft_floor_section(quick)
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
               " pyramid, the pyramid holding the waves across the light from level 2, and the two"
               " full-resolution continuations, the lowest energy kept: `shading_starts._bare_tile_starts`)"
@@ -1436,6 +1437,87 @@ def _malloc_policy_rows(n: int, repeats: int) -> list[str]:
     return [f"| {label} | {times['off'][key]:.2f} | {times['on'][key]:.2f} | {times['on'][key] / times['off'][key]:.2f} |"
             for key, label in (("tile", "tiles: summed s"), ("plain", "plain images: summed s"),
                                ("slowest plain", "slowest plain image: s per megapixel"))]
+
+
+class _CountingFFT:
+    """Stands in for ``shading_variational.sfft``: the real-input transforms it is asked for,
+    counted by (kind, input shape, workers), passed on to :mod:`scipy.fft`."""
+
+    def __init__(self):
+        import scipy.fft
+
+        self.fft, self.counts = scipy.fft, {}
+
+    def rfft2(self, a, workers=None):
+        key = ("rfft2", a.shape, workers)
+        self.counts[key] = self.counts.get(key, 0) + 1
+        return self.fft.rfft2(a, workers=workers)
+
+    def irfft2(self, a, s=None, workers=None, overwrite_x=False):
+        key = ("irfft2", tuple(s), workers)
+        self.counts[key] = self.counts.get(key, 0) + 1
+        return self.fft.irfft2(a, s=s, workers=workers, overwrite_x=overwrite_x)
+
+
+def _fft_seconds(kind: str, shape: tuple[int, int], workers, repeats: int = 7) -> float:
+    """The fastest of `repeats` single float32 transforms of `kind` at `shape` (the real
+    side's), as the solver calls them."""
+    import scipy.fft
+
+    real = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
+    spectrum = scipy.fft.rfft2(real)
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        if kind == "rfft2":
+            scipy.fft.rfft2(real, workers=workers)
+        else:
+            scipy.fft.irfft2(spectrum.copy(), s=shape, workers=workers, overwrite_x=True)
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _fft_floor_rows(n: int, repeats: int) -> list[str]:
+    """The default solver's time at `n` px (random bumps, seed 5, light given, the timing
+    lights; tile and plain image; best of `repeats`; the prior's test in this process) against
+    the time of the FFTs it calls: each transform timed alone at its size (best of 7, same
+    run), times the number of calls."""
+    truth = ts.random_bumps((n, n), PIXEL_UM, seed=5)
+    rows = []
+    for periodic in (True, False):
+        for slant, tilt in TIMING_LIGHTS:
+            light = Light(slant, tilt)
+            img = render_lambertian(truth, PIXEL_UM, light, ALBEDO, periodic=periodic)
+            counter = _CountingFFT()
+            with mock.patch.object(shading_variational, "CHECK_PROCESSES", 1):
+                with mock.patch.object(shading_variational, "sfft", counter):
+                    shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=periodic)
+                seconds, _ = _best_solve(img, light, periodic, repeats)
+            floor = sum(count * _fft_seconds(kind, shape, workers)
+                        for (kind, shape, workers), count in counter.counts.items())
+            finest = max(shape for _, shape, _ in counter.counts)
+            at_finest = sum(c for (_, shape, _), c in counter.counts.items() if shape == finest)
+            mp = n * n / 1e6
+            rows.append(f"| {'tile' if periodic else 'plain image'} | {slant:g}, {tilt:g} | {seconds / mp:.2f} |"
+                        f" {sum(counter.counts.values())} ({at_finest} at {finest[0]} x {finest[1]} px) |"
+                        f" {floor / mp:.2f} | {floor / seconds:.2f} |")
+    return rows
+
+
+def fft_floor_section(quick: bool = False) -> list[str]:
+    """The timing section's table of the default solver's time against the FFTs it calls
+    (:func:`_fft_floor_rows`), runnable alone."""
+    tn = 512 if quick else 1024
+    return ["", f"Where the default solver's time goes at {tn} x {tn} px (random bumps, seed 5, light given;"
+            " the prior's test of plain images run in this process): seconds per megapixel (best of"
+            f" {1 if quick else 2}), the FFTs it calls (the preconditioner's pair in every CG iteration,"
+            " the prior's waves; on the finest level's domain in brackets), and the floor those set: each"
+            " transform timed alone at its size in the same run (best of 7) times its count, per"
+            " megapixel and as a share of the solve. The rest is the compiled passes over the pixels,"
+            " the line searches and Python's overhead on the small levels:", "",
+            "| image | slant, tilt (°) | s per megapixel | FFTs | FFT floor: s per megapixel | share |",
+            "| --- | --- | --- | --- | --- | --- |",
+            *_fft_floor_rows(tn, repeats=1 if quick else 2)]
 
 
 def _aligned_timing_rows(sides) -> list[str]:
