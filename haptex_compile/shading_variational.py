@@ -111,13 +111,15 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pools)
 
 
-def _row_blocks(rows: int, parts: int) -> list[slice]:
-    """`parts` contiguous blocks of row indices covering ``range(rows)``."""
+@functools.lru_cache(maxsize=256)
+def _row_blocks(rows: int, parts: int) -> tuple[slice, ...]:
+    """`parts` contiguous blocks of row indices covering ``range(rows)`` (cached: a light
+    search asks for them some 10 times per Gauss-Newton step on levels of a few pixels)."""
     edges = [rows * k // parts for k in range(parts + 1)]
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    return tuple(slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a)
 
 
-def _run_rows(fn: Callable[[slice], None], blocks: list[slice]) -> None:
+def _run_rows(fn: Callable[[slice], None], blocks: tuple[slice, ...]) -> None:
     """Call ``fn(block)`` for every block of rows, one thread per block: the calling
     thread takes the first block, pool threads the others."""
     futures = []
@@ -314,7 +316,7 @@ class _LowFreqOperator:
         ``row_products_rows``), None without them."""
         return None if self.profiles is None else np.empty((2, self.shape[0]), _F)
 
-    def products_of(self, v: np.ndarray, blocks: list[slice]) -> np.ndarray:
+    def products_of(self, v: np.ndarray, blocks: tuple[slice, ...]) -> np.ndarray:
         """`v`'s rows' products with the plane's profiles (in threads by `blocks` of rows)."""
         products = self.products()
         _run_rows(lambda rows: row_products_rows(v, self.profiles, products, rows.start, rows.stop), blocks)
@@ -421,6 +423,8 @@ class _Problem:
         self.lam = float(lam)
         # Weight of the squared slope across the light in R's normalisation (1 = exact R).
         self.across_weight = 1.0
+        self._reflectance_args = None  # (across_weight, the kernels' arguments): see reflectance_args
+        self._wsum = None  # see precond
         # Threads only pay on large levels (measured: a 2-thread FFT of 128 x 128 costs more).
         self.workers = workers if image.size >= PARALLEL_FFT_MIN_PIXELS else 1
         rows, cols = image.shape
@@ -429,6 +433,8 @@ class _Problem:
         self.sx = np.sin(wx).astype(_F)
         self.sy = np.sin(wy).astype(_F)
         self.lap2 = ((2 * np.cos(wx) + 2 * np.cos(wy) - 4) ** 2).astype(_F)
+        # The preconditioner's fixed parts (the same float32 values it computed in every step).
+        self._sx2, self._sy2, self._lam_lap2 = self.sx**2, self.sy**2, self.lam * self.lap2
         self.shape = (rows, cols)
         # Optional penalty on slopes at wavelengths longer than the data region (non-periodic
         # images: a ramp or bowl across the image is otherwise nearly free, traded against
@@ -506,8 +512,12 @@ class _Problem:
         """The kernels' reflectance arguments (float32): the light, the damping ``k`` of the
         squared slope across the light and that direction (see shading_kernels'
         ``_reflectance_pixel``)."""
-        across = _across(self.light) or (0.0, 0.0)
-        return np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F)
+        # (kept while the damping stays: asked for in every Gauss-Newton step and line search)
+        if self._reflectance_args is None or self._reflectance_args[0] != self.across_weight:
+            across = _across(self.light) or (0.0, 0.0)
+            args = np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F)
+            self._reflectance_args = (self.across_weight, args)
+        return self._reflectance_args[1]
 
     def censored_args(self) -> tuple:
         """The kernels' censored-pixel arguments: the dark and bright weights and whether
@@ -515,7 +525,7 @@ class _Problem:
         return (self.w if self.dark is None else self.dark, self.w if self.bright is None else self.bright,
                 self.dark is not None, self.bright is not None)
 
-    def blocks(self, rows: int) -> list[slice]:
+    def blocks(self, rows: int) -> tuple[slice, ...]:
         """Row blocks of the elementwise work, one per thread."""
         return _row_blocks(rows, self.workers)
 
@@ -547,14 +557,16 @@ class _Problem:
         """The preconditioner's inverse symbol from the weighted sums of ``rp²``, ``rp rq``
         and ``rq²`` over the pixels."""
         w = self.w
-        wsum = float(w.sum()) or 1.0
+        if self._wsum is None:  # the data weights' sum, fixed on the level
+            self._wsum = float(w.sum()) or 1.0
+        wsum = self._wsum
         # Average reflectance-gradient tensor over the pixels, weighted by data weight; the
         # preconditioner sees the mean data weight, so masked margins are accounted for.
         wm = wsum / w.size
         txx, txy, tyy = (t / wsum * wm for t in sums)
         a2 = albedo * albedo
-        sym = a2 * (txx * self.sx**2 + 2 * txy * self.sx * self.sy + tyy * self.sy**2)
-        sym = sym + self.lam * self.lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
+        sym = a2 * (txx * self._sx2 + 2 * txy * self.sx * self.sy + tyy * self._sy2)
+        sym = sym + self._lam_lap2 + 1e-6 * (a2 * (txx + tyy) + self.lam)
         if self.lf is not None:
             sym = sym + self.lf
         inv = (1.0 / sym).astype(_F)
