@@ -44,6 +44,14 @@ FINAL_SIDE_PX = 256
 # both (FULL_SIDE_PX <= FINAL_SIDE_PX: no such stage). Measured: see bench_shading's table of
 # larger tiles.
 FULL_SIDE_PX = 1024
+# A plain image (not a tile) has that stage only when its longer side is above this: on plain
+# crops of up to 420 px the stage bought nothing at twice the time. Measured on the first 18
+# of bench_light's crops larger than 256 px (6 per surface; 246-413 x 115-411 px; light
+# estimated): mean height error 0.354 with the stage, 0.355 without; 10 of 18 more than 0.05
+# worse than the given light either way (4 better and 3 worse by more than 0.02 with it);
+# summed seconds 369.9 against 185.4. Its gain on tiles was measured at 512 and 768 px, where
+# the final image is reduced 2-3 x (up to 420 px, at most 1.64 x); larger plain images keep it.
+PLAIN_FULL_ABOVE_PX = 420
 # The coarse image is rescanned at the final side when it loses more than this fraction of the
 # image's variance.
 MAX_REDUCTION_LOSS = 0.05
@@ -291,7 +299,8 @@ def estimate_light(image, *, mask=None, refine: bool = True, periodic: bool = Tr
         40 on one of at most 256 pixels; on 2 cores 1.3-2.1 s for the 256 px bench tiles,
         with each step's candidate lights solved side by side in ``SEARCH_PROCESSES``
         worker processes, 2.4-3.6 s in one). A larger image has about 40 more solves on
-        itself (up to ``FULL_SIDE_PX``): see ``bench/bench_shading.py`` for their seconds.
+        itself (up to ``FULL_SIDE_PX``; a plain image only above ``PLAIN_FULL_ABOVE_PX``):
+        see ``bench/bench_shading.py`` for their seconds.
     periodic : bool
         Whether the image wraps (a tile). The search solves each light on a periodic domain
         either way; on a plain image (False) its misfit leaves out a band of
@@ -544,11 +553,12 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     more than ``MAX_REDUCTION_LOSS`` of the image's variance, a tilt scan
     (±``TILT_SCAN_DEG`` in ``TILT_SCAN_STEP_DEG`` steps), and a compass search over slant and
     tilt together (steps 2°, 1°, 0.5°; they are coupled). An image larger than
-    ``FINAL_SIDE_PX`` has the final stage run again on the image itself (at most
-    ``FULL_SIDE_PX``, from the same reduced-image stage), and keeps, of the two lights, the one
-    that fits the full image better (a free albedo before one at the bound). The misfit is
-    invariant under ``tilt -> tilt + 180°`` with the height negated (bumps versus dents), so
-    the tilt stays on the side of the statistical estimate (light from the top of the image).
+    ``FINAL_SIDE_PX`` (a plain image: than ``PLAIN_FULL_ABOVE_PX``) has the final stage run
+    again on the image itself (at most ``FULL_SIDE_PX``, from the same reduced-image stage),
+    and keeps, of the two lights, the one that fits the full image better (a free albedo
+    before one at the bound). The misfit is invariant under ``tilt -> tilt + 180°`` with the
+    height negated (bumps versus dents), so the tilt stays on the side of the statistical
+    estimate (light from the top of the image).
 
     Those steps are local, and the statistical tilt assumes an isotropic surface: a lattice
     relief's own anisotropy can turn it far from the light (31° on a 16 px oblique lattice,
@@ -629,7 +639,8 @@ def _refine_light(img, valid, slant, tilt, censored, side=SEARCH_SIDE_PX, period
     final = _misfit_function(img, valid, censored, FINAL_SIDE_PX, _block_average, periodic=periodic,
                              looser_cos=STEEP_ALIGN_COS)
     full = None
-    if max(img.shape) > FINAL_SIDE_PX and FULL_SIDE_PX > FINAL_SIDE_PX:
+    full_above = FINAL_SIDE_PX if periodic else max(FINAL_SIDE_PX, PLAIN_FULL_ABOVE_PX)
+    if max(img.shape) > full_above and FULL_SIDE_PX > FINAL_SIDE_PX:
         full = _misfit_function(img, valid, censored, FULL_SIDE_PX, _block_average, periodic=periodic,
                                 looser_cos=STEEP_ALIGN_COS)
     lossy = _reduction_loss(img, valid, side) > MAX_REDUCTION_LOSS

@@ -1755,6 +1755,37 @@ def test_a_larger_tiles_light_is_searched_again_at_full_resolution(monkeypatch):
     assert misfit[full] < misfit[final]
 
 
+@pytest.mark.parametrize("side, periodic, full", [
+    (300, True, True), (300, False, False), (shading_light.PLAIN_FULL_ABOVE_PX, False, False),
+    (shading_light.PLAIN_FULL_ABOVE_PX + 1, False, True), (shading_light.FINAL_SIDE_PX, True, False)])
+def test_the_full_resolution_stage_is_set_up_for_tiles_and_large_plain_images(monkeypatch, side, periodic, full):
+    # The stage runs on tiles larger than the final image, and on plain images only above
+    # PLAIN_FULL_ABOVE_PX (below, it bought nothing at twice the time). The search is stopped
+    # once its stages are set up: no light is solved.
+    import types
+
+    class Stop(Exception):
+        pass
+
+    sides = []
+
+    def misfit_function(img, valid, censored, side_px, *args, **kwargs):
+        sides.append(side_px)
+        return types.SimpleNamespace(looser=None)
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr(shading_light, "_misfit_function", misfit_function)
+    monkeypatch.setattr(shading_light, "forked_map", stop)
+    img = render_lambertian(ts.random_bumps((side, side // 2), PX, seed=1), PX, Light(45.0, 200.0), 0.8,
+                            periodic=True)
+    with pytest.raises(Stop):
+        estimate_light(img, periodic=periodic)
+    assert (shading_light.FULL_SIDE_PX in sides) == full
+    assert sides[:2] == [shading_light.SEARCH_SIDE_PX, shading_light.FINAL_SIDE_PX]
+
+
 def test_a_steep_light_held_by_the_albedo_bound_is_searched_again_under_a_looser_one(monkeypatch):
     # Random bumps (RMS slope 0.2) lit at 60°: no normal comes within 35° of the light, so the
     # search's albedo bound I_top / cos 35° lies below the true albedo (0.8) and the true light
