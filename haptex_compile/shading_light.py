@@ -51,6 +51,9 @@ FULL_SIDE_PX = 1024
 # worse than the given light either way (4 better and 3 worse by more than 0.02 with it);
 # summed seconds 369.9 against 185.4. Its gain on tiles was measured at 512 and 768 px, where
 # the final image is reduced 2-3 x (up to 420 px, at most 1.64 x); larger plain images keep it.
+# On all of bench_light's 60 crops (90-420 px; its rerun at afc5a38 against 40107eb): mean
+# errors 0.478 / 0.230 / 0.259 -> 0.499 / 0.230 / 0.263 (sphere cap, plain weave, random
+# bumps), 29 -> 30 estimates more than 5 points worse, 990 -> 566 s.
 PLAIN_FULL_ABOVE_PX = 420
 # The coarse image is rescanned at the final side when it loses more than this fraction of the
 # image's variance.
