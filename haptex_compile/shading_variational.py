@@ -142,6 +142,9 @@ def _dx2(z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Twice the periodic central difference along columns (x): z[j+1] - z[j-1] (into `out`,
     not `z`, when given)."""
     out = np.empty_like(z) if out is None else out
+    if z.shape[1] < 3:  # a column's neighbours either side are one and the same pixel
+        out[...] = 0
+        return out
     np.subtract(z[:, 2:], z[:, :-2], out=out[:, 1:-1])
     np.subtract(z[:, 1], z[:, -1], out=out[:, 0])
     np.subtract(z[:, 0], z[:, -2], out=out[:, -1])
@@ -161,6 +164,9 @@ def _dy2_rows(z: np.ndarray, rows: slice, out: np.ndarray) -> np.ndarray:
     returned."""
     n = z.shape[0]
     r0, r1 = rows.start, rows.stop
+    if n < 3:  # a row's neighbours either side are one and the same row
+        out[rows] = 0
+        return out[rows]
     i0, i1 = max(r0, 1), min(r1, n - 1)
     if i1 > i0:
         np.subtract(z[i0 + 1:i1 + 1], z[i0 - 1:i1 - 1], out=out[i0:i1])

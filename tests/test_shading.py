@@ -370,6 +370,21 @@ def test_threaded_level_runs_in_a_forked_child():
     assert child.exitcode == 0
 
 
+@pytest.mark.parametrize("shape", [(1, 6), (2, 6), (6, 1), (6, 2), (1, 1)])
+def test_reflectance_of_a_strip_one_or_two_pixels_wide(shape):
+    # Along an axis of one or two pixels, a pixel's periodic neighbours either side are the same
+    # pixel: no slope along it. A ramp along the other axis (if it is 3 px or more) keeps its
+    # slope, wrapped ends included: R = (lz - p lx - q ly) / sqrt(1 + p² + q²).
+    light = Light(40.0, 70.0)
+    lx, ly, lz = light.vector
+    rows, cols = shape
+    z = 0.3 * np.arange(rows)[:, None] + 0.2 * np.arange(cols)[None, :]
+    p = np.zeros(shape) if cols < 3 else np.gradient(np.pad(z, ((0, 0), (1, 1)), mode="wrap"), axis=1)[:, 1:-1]
+    q = np.zeros(shape) if rows < 3 else np.gradient(np.pad(z, ((1, 1), (0, 0)), mode="wrap"), axis=0)[1:-1]
+    expected = (lz - p * lx - q * ly) / np.sqrt(1 + p * p + q * q)
+    np.testing.assert_allclose(reflectance(z, light.vector), expected, rtol=1e-12)
+
+
 def test_damped_reflectance_weights_only_the_slope_across_the_light():
     from haptex_compile.shading_kernels import _reflectance_pixel
     from haptex_compile.shading_variational import _across
