@@ -402,7 +402,7 @@ class _Problem:
 
     def __init__(self, image, weight, light, lam, workers=2, lowfreq=None, dark=None, bright=None,
                  bound_noise_sigmas=0.0, albedo_bound=True, lowfreq_spectral=None, lowfreq_plane=0.0,
-                 plane_support=None):
+                 plane_support=None, across_weight=1.0):
         # (not copied where they are contiguous float32 already: a level's arrays are only read)
         self.img = np.ascontiguousarray(image, dtype=_F)
         self.w = np.ascontiguousarray(weight, dtype=_F)
@@ -428,9 +428,11 @@ class _Problem:
         self.light = np.asarray(light, dtype=float)
         self.lam = float(lam)
         # Weight of the squared slope across the light in R's normalisation (1 = exact R).
-        self.across_weight = 1.0
-        self._reflectance_args = None  # (across_weight, the kernels' arguments): see reflectance_args
-        self._wsum = None  # see precond
+        self.across_weight = float(across_weight)
+        across = _across(self.light) or (0.0, 0.0)  # see reflectance_args
+        self._reflectance_args = (np.asarray(self.light, _F), _F(1.0 - self.across_weight),
+                                  np.asarray(across, _F))
+        self._wsum = float(self.w.sum()) or 1.0  # the data weights' sum (the preconditioner's)
         # Threads only pay on large levels (measured: a 2-thread FFT of 128 x 128 costs more).
         self.workers = workers if image.size >= PARALLEL_FFT_MIN_PIXELS else 1
         rows, cols = image.shape
@@ -518,12 +520,7 @@ class _Problem:
         """The kernels' reflectance arguments (float32): the light, the damping ``k`` of the
         squared slope across the light and that direction (see shading_kernels'
         ``_reflectance_pixel``)."""
-        # (kept while the damping stays: asked for in every Gauss-Newton step and line search)
-        if self._reflectance_args is None or self._reflectance_args[0] != self.across_weight:
-            across = _across(self.light) or (0.0, 0.0)
-            args = np.asarray(self.light, _F), _F(1.0 - self.across_weight), np.asarray(across, _F)
-            self._reflectance_args = (self.across_weight, args)
-        return self._reflectance_args[1]
+        return self._reflectance_args
 
     def censored_args(self) -> tuple:
         """The kernels' censored-pixel arguments: the dark and bright weights and whether
@@ -563,8 +560,6 @@ class _Problem:
         """The preconditioner's inverse symbol from the weighted sums of ``rp²``, ``rp rq``
         and ``rq²`` over the pixels."""
         w = self.w
-        if self._wsum is None:  # the data weights' sum, fixed on the level
-            self._wsum = float(w.sum()) or 1.0
         wsum = self._wsum
         # Average reflectance-gradient tensor over the pixels, weighted by data weight; the
         # preconditioner sees the mean data weight, so masked margins are accounted for.
@@ -1248,9 +1243,9 @@ def solve_variational(
             bound_noise_sigmas, albedo_bound=level <= bound_max_level, lowfreq_spectral=spectral,
             lowfreq_plane=lowfreq_plane_weight * (lowfreq_plane_coarse if level >= lowfreq_plane_coarse_level else 1.0),
             plane_support=None if regions is None else regions[level],
+            across_weight=1.0 / (1.0 + damping * ratios[level]),
         )
         prob.albedo_max = max(albedo_max, prob.albedo_min)
-        prob.across_weight = 1.0 / (1.0 + damping * ratios[level])
         prob.project_albedo = albedo_projection and fit_albedo and level >= fit_min_level
         prob.project_albedo &= projection_levels is None or level in projection_levels
         prob.project_albedo &= ratios[level] <= projection_max_ratio
