@@ -55,9 +55,9 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
-import scipy.fft as sfft
 import cv2
 
+from haptex_compile import real_fft
 from haptex_compile.forked_map import call_beside
 from haptex_compile.malloc_policy import keep_freed_memory
 from haptex_compile.shading_image import DARK as DARK_LEVEL, SATURATED as BRIGHT_LEVEL
@@ -295,7 +295,7 @@ class _LowFreqOperator:
 
     def analyse(self, v: np.ndarray, workers: int) -> np.ndarray:
         """The rectangle's coefficients of `v` (complex128)."""
-        return self.waves(sfft.rfft2(v, workers=workers))
+        return self.waves(real_fft.rfft2(v, workers))
 
     def waves(self, spectrum: np.ndarray) -> np.ndarray:
         """The rectangle's coefficients in an rfft2 `spectrum` (complex128)."""
@@ -315,7 +315,7 @@ class _LowFreqOperator:
         coefficients `coef`."""
         spec = np.zeros((self.shape[0], self.shape[1] // 2 + 1), np.complex64)
         self.add_to_spectrum(coef, spec)
-        return sfft.irfft2(spec, s=self.shape, workers=workers, overwrite_x=True).astype(_F, copy=False)
+        return real_fft.irfft2(spec, self.shape, workers).astype(_F, copy=False)
 
     def products(self) -> np.ndarray | None:
         """An array for the rows' products with the plane's profiles (see
@@ -585,7 +585,7 @@ class _Problem:
         """The preconditioner applied to `v` plus, with the prior, the vector of the prior's
         waves with coefficients `waves`: (result, its waves' coefficients, `v`'s waves'
         coefficients), the last two None without `waves`."""
-        f = sfft.rfft2(v, workers=self.workers)
+        f = real_fft.rfft2(v, self.workers)
         v_waves = z_waves = None
         if waves is not None:
             v_waves = self._lf.waves(f)
@@ -593,9 +593,8 @@ class _Problem:
         f *= inv_sym
         if waves is not None:
             z_waves = self._lf.waves(f)
-        # The spectrum is a temporary: the inverse may work in it (measured at 1024 px: 4.1
-        # -> 3.5 ms for the pair of transforms).
-        return sfft.irfft2(f, s=self.shape, workers=self.workers, overwrite_x=True), z_waves, v_waves
+        # The spectrum is a temporary: the inverse may work in it.
+        return real_fft.irfft2(f, self.shape, self.workers), z_waves, v_waves
 
     def gn_step(self, z, albedo, max_cg, tol, previous=(), zw=None):
         """One Gauss-Newton direction by PCG, then the minimum of the Gauss-Newton model over
