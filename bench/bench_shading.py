@@ -1299,6 +1299,7 @@ def timing_section(quick: bool = False) -> list[str]:
               "| | default malloc | the solver's policy | ratio |", "| --- | --- | --- | --- |",
               *_malloc_policy_rows(tn, repeats=1 if quick else 2)]
     lines += fft_floor_section(quick)
+    lines += fft_call_section(quick)
     lines += ["", "The default solver with the light along the tile's x axis (warned, see above: the"
               " pyramid, the pyramid holding the waves across the light from level 2, and the two"
               " full-resolution continuations, the lowest energy kept: `shading_starts._bare_tile_starts`)"
@@ -1477,6 +1478,82 @@ def _fft_seconds(kind: str, shape: tuple[int, int], workers, repeats: int = 7) -
             real_fft.irfft2(scratch, shape, workers)
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+class _PublicFFT:
+    """Stands in for ``shading_variational.real_fft`` with :mod:`scipy.fft`'s public
+    functions, as the solver called them before ``real_fft`` (the baseline of
+    :func:`fft_call_section`)."""
+
+    @staticmethod
+    def rfft2(a, workers):
+        import scipy.fft
+
+        return scipy.fft.rfft2(a, workers=workers)
+
+    @staticmethod
+    def irfft2(spectrum, shape, workers):
+        import scipy.fft
+
+        return scipy.fft.irfft2(spectrum, s=shape, workers=workers, overwrite_x=True)
+
+
+def _fft_call_rows(sides, searches, repeats: int) -> list[str]:
+    """Seconds of the default solver (light given, random bumps of seed 5 as tiles of each of
+    `sides`) and of light searches (`searches`: (name, image) pairs), with the FFT pair
+    through ``real_fft`` and through scipy.fft's public functions (baseline), best of
+    `repeats` in alternating order, and whether the results have the same bits."""
+    def timed(fn, public):
+        best, out = np.inf, None
+        for _ in range(repeats):
+            with contextlib.ExitStack() as stack:
+                if public:
+                    stack.enter_context(mock.patch.object(shading_variational, "real_fft", _PublicFFT))
+                t0 = time.perf_counter()
+                out = fn()
+                best = min(best, time.perf_counter() - t0)
+        return best, out
+
+    cases = []
+    for n in sides:
+        light = Light(45.0, 200.0)
+        img = render_lambertian(ts.random_bumps((n, n), PIXEL_UM, seed=5), PIXEL_UM, light, ALBEDO, periodic=True)
+        solves = max(1, int(round(20 * (96 / n) ** 2)))  # about a second of solves a side
+        cases.append((f"{solves} solves of {n} x {n} px tiles, light given",
+                      lambda img=img, light=light, k=solves: [
+                          shape_from_shading(img, pixel_size_um=PIXEL_UM, light=light, periodic=True).height
+                          for _ in range(k)]))
+    for name, img in searches:
+        cases.append((f"light search, {name}", lambda img=img: estimate_light(img)))
+    rows, totals = [], np.zeros(2)
+    for name, fn in cases:
+        (t_direct, direct), (t_public, public) = timed(fn, False), timed(fn, True)
+        if repeats > 1:  # the other order once more: the host's load drifts
+            t_public = min(t_public, timed(fn, True)[0])
+            t_direct = min(t_direct, timed(fn, False)[0])
+        same = all(np.array_equal(a, b) for a, b in zip(direct, public)) if isinstance(direct, list) else direct == public
+        totals += (t_direct, t_public)
+        rows.append(f"| {name} | {t_direct:.2f} | {t_public:.2f} | {t_direct / t_public:.2f} | {'yes' if same else 'NO'} |")
+    rows.append(f"| all | {totals[0]:.2f} | {totals[1]:.2f} | {totals[0] / totals[1]:.2f} | |")
+    return rows
+
+
+def fft_call_section(quick: bool = False) -> list[str]:
+    """The timing section's table of ``real_fft`` against scipy.fft's public functions
+    (:func:`_fft_call_rows`), runnable alone."""
+    searches = [("random bumps 128 px, 30°, 120°", render_lambertian(
+        ts.random_bumps((128, 128), PIXEL_UM, seed=1), PIXEL_UM, Light(30.0, 120.0), ALBEDO, periodic=True))]
+    if not quick:
+        searches.append(("square lattice relief 128 px, 15°, 30°", render_lambertian(
+            lattice_relief((128, 128), (16, 0), (0, 16), amplitude_um=12.0), PIXEL_UM, Light(15.0, 30.0), ALBEDO,
+            periodic=True)))
+    return ["", "The solver's FFT pair straight to scipy's pocketfft binding (`haptex_compile.real_fft`)"
+            " against scipy.fft's public functions (baseline, same run), which spend most of a small"
+            " level's pair checking their arguments: seconds, best of each case's runs in alternating"
+            " order, and whether the heights (lights) are the same bit for bit. The light search runs"
+            " hundreds of solves of at most 96 and 256 px a side, whose coarse levels are 6-48 px:", "",
+            "| case | real_fft: s | scipy.fft: s | ratio | same bits |", "| --- | --- | --- | --- | --- |",
+            *_fft_call_rows((48, 96) if quick else (48, 96, 256), searches, repeats=1 if quick else 2)]
 
 
 def _fft_floor_rows(n: int, repeats: int) -> list[str]:
