@@ -432,7 +432,6 @@ class _Problem:
         across = _across(self.light) or (0.0, 0.0)  # see reflectance_args
         self._reflectance_args = (np.asarray(self.light, _F), _F(1.0 - self.across_weight),
                                   np.asarray(across, _F))
-        self._wsum = float(self.w.sum()) or 1.0  # the data weights' sum (the preconditioner's)
         # Threads only pay on large levels (measured: a 2-thread FFT of 128 x 128 costs more).
         self.workers = workers if image.size >= PARALLEL_FFT_MIN_PIXELS else 1
         rows, cols = image.shape
@@ -560,7 +559,7 @@ class _Problem:
         """The preconditioner's inverse symbol from the weighted sums of ``rp²``, ``rp rq``
         and ``rq²`` over the pixels."""
         w = self.w
-        wsum = self._wsum
+        wsum = float(w.sum()) or 1.0
         # Average reflectance-gradient tensor over the pixels, weighted by data weight; the
         # preconditioner sees the mean data weight, so masked margins are accounted for.
         wm = wsum / w.size
