@@ -55,10 +55,14 @@ def _one(job: dict) -> tuple[str, str | None]:
         compile_source(job["spec"], job["out"], job["scene"], job["options"], exr_path=job["exr"],
                        exr_speed=job["exr_speed"], exr_direction=job["exr_direction"])
         return job["spec"], None
-    except (HaptexError, OSError, ValueError) as exc:
+    except (HaptexError, OSError, ValueError, MemoryError) as exc:
         if job["debug"]:
             raise
-        return job["spec"], " ".join(str(exc).split())
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            message = f"out of memory ({message})"
+        # The message names the input (several may be compiled in one run).
+        return job["spec"], message if job["spec"] in message else f"{job['spec']}: {message}"
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})

@@ -31,6 +31,7 @@ import scipy.fft
 from scipy import sparse
 
 from haptex_compile.colours import TwoColourModel
+from haptex_compile.errors import InputError
 from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
 from haptex_compile.line_sampling import LineSampler
 from haptex_compile.surface import _bspline_weights
@@ -38,6 +39,13 @@ from haptex_compile.surface import _bspline_weights
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
 GROUP_LENGTH_RATIO = 1.3  # speeds share a line transform while their lines differ by less than this
+# The largest array one direction's analysis may hold (bytes): its lines, or a group's footprint
+# grids. Surfaces whose pixels are far finer than the scene needs (lines of millions of samples)
+# or whose extent is far larger (grids of millions of footprint cells) would otherwise exhaust
+# the machine's memory (a direction's peak is a few times its largest array, and two run at
+# once); they are refused with the sizes instead. The largest seen on the bench's surfaces and
+# the real photos: 83 MB (lines of a 1024 px surface of 10 um pixels) and 4 MB (grids).
+MAX_ARRAY_BYTES = 2 ** 30
 
 
 def kernel_cut_cyc_per_mm(sigma_mm: float) -> float:
@@ -102,6 +110,18 @@ def _bspline_matrix(y: np.ndarray | tuple[np.ndarray, np.ndarray], x: np.ndarray
     return sparse.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(n, ny * nx))
 
 
+def _check_size(n_bytes: int, sampler: LineSampler, what: str, advice: str) -> None:
+    """Raise :class:`InputError` when an array of `n_bytes` would exceed ``MAX_ARRAY_BYTES``."""
+    if n_bytes > MAX_ARRAY_BYTES:
+        surface = sampler.surface
+        rows, cols = surface.height_um.shape
+        px_mm = surface.pixel_size_mm
+        raise InputError(
+            None, f"the surface ({cols} x {rows} px of {px_mm * 1000:.4g} um, {cols * px_mm:.4g} x {rows * px_mm:.4g} mm)"
+            f" is out of scale for the tables: {what} would take {n_bytes / 2 ** 30:.1f} GiB,"
+            f" above {MAX_ARRAY_BYTES / 2 ** 30:.0f} GiB per direction; {advice}")
+
+
 def direction_powers(
     sampler: LineSampler,
     model: TwoColourModel,
@@ -136,6 +156,8 @@ def direction_powers(
     xi_cut = kernel_cut_cyc_per_mm(sigma)
     pad = FOOTPRINT_TRUNCATION * sigma + 2 * px  # the footprint's support (the cropped kernel's ringing is below 1e-4)
     frame, n_rows, n_cols = sampler.frame(direction_deg, u, v, line_margin_mm(speeds.max(), settings, px), pad)
+    _check_size(4 * n_rows * n_cols, sampler, f"its lines ({n_rows} x {n_cols} samples)",
+                "give it coarser pixels (resample it) or check its pixel size")
     lines = sampler.sample(frame, n_rows, n_cols)
     jf, kf = frame.index_coords(u, v)
     da = frame.along_mm
@@ -188,6 +210,8 @@ def direction_powers(
         base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
         bounds = offset + np.cumsum([0] + keeps)
         offset = int(bounds[-1])
+        _check_size(4 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
+                    "crop it or check its pixel size")
         coeffs = np.empty((len(group), 2, gj, gk), dtype=np.float32)
         n_outs = [scipy.fft.next_fast_len(n_keep + kk + 2) for n_keep in keeps]
         zbuf = np.empty(n_rows * max(n_outs), dtype=np.complex64)  # reused by every pass (transformed in place)
@@ -204,6 +228,11 @@ def direction_powers(
                 power = np.square(z.real)
                 power += np.square(z.imag)
                 low = scipy.fft.rfft(power, axis=1, workers=workers)[:, :kk + 1]
+                if low.shape[1] < kk + 1:
+                    # Pixels coarser than the footprint: the kernel reaches beyond the bins the
+                    # power has, where its spectrum is zero (it holds no frequency above
+                    # n_keep - 2, below n_out / 2).
+                    low = np.pad(low, ((0, 0), (0, kk + 1 - low.shape[1])))
                 low = scipy.fft.fft(low, axis=0, workers=workers)[mj]
                 low *= kernel
                 grid = np.zeros((gj, gk // 2 + 1), dtype=np.complex64)

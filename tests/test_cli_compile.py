@@ -231,3 +231,22 @@ def test_tables_and_direct_modes_agree(asset, tmp_path):
     err40 = np.abs(a40t - a40d).mean() / a40d.mean()
     err320 = np.abs(a320t - a320d).mean() / a320d.mean()
     assert err40 < 0.08 and err320 < 0.08
+
+
+@pytest.mark.parametrize("error, line", [
+    (MemoryError("Unable to allocate 3.0 GiB for an array"), "in.npy: out of memory (Unable to allocate 3.0 GiB for an array)"),
+    (ValueError("operands could not be broadcast"), "in.npy: operands could not be broadcast"),
+    (ValueError("in.npy: image too small"), "in.npy: image too small"),
+])
+def test_a_failed_input_gets_one_line_that_names_it(monkeypatch, error, line):
+    # With several inputs, a message that does not name its file says nothing of which failed;
+    # running out of memory was a traceback.
+    from haptex_compile import cli, compile as compile_module
+
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(compile_module, "compile_source", fail)
+    job = {"spec": "in.npy", "out": "in.tact.h5", "scene": None, "options": None, "exr": None, "exr_speed": 80.0,
+           "exr_direction": 0.0, "debug": False}
+    assert cli._one(job) == ("in.npy", line)

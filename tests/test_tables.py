@@ -368,3 +368,36 @@ def test_speed_midpoints_are_the_log_speed_cubic_spline_through_the_nodes():
     assert np.array_equal(dense[:, 0::2], x)
     spline = CubicSpline(np.log(speeds), x.astype(float), axis=1)(np.log(mids))
     assert np.allclose(dense[:, 1::2], np.maximum(spline, 0.0), atol=1e-6)
+
+
+def test_pixels_coarser_than_the_footprint_agree_with_rotated_lines():
+    """Pixels of 0.5 mm (twice the footprint sigma): the averaging kernel reaches beyond the
+    frequencies the lines' power holds, where it is zero. The fast path used to fail there
+    (arrays of those two lengths multiplied); it gives what the rotated lines give."""
+    from haptex_compile.line_analysis import direction_powers
+    from haptex_compile.tables import _direction_powers, line_sampler
+
+    surf = Surface(brownian_surface((16, 16), 0.5, pixel_size_um=500.0, rms_um=50.0, seed=1), 500.0)
+    nodes = np.random.default_rng(5).uniform(1.0, 7.0, (6, 2))
+    speeds = np.array([12.0, 60.0, 180.0])
+    for d in (0.0, 35.0):
+        fast = direction_powers(line_sampler(surf), MODEL, SETTINGS, nodes, d, speeds)
+        slow = _direction_powers(surf, MODEL, SETTINGS, nodes, d, speeds)
+        assert np.isfinite(fast).all() and fast.min() >= 0
+        assert np.abs(fast - slow).max() < 0.1 * np.abs(slow).max()
+
+
+def test_a_surface_out_of_scale_for_the_tables_is_refused_with_its_sizes(brownian_small, monkeypatch):
+    # Pixels far finer than the scene needs (lines of millions of samples) or an extent far
+    # larger (grids of millions of footprint cells) exhausted the memory (killed, or a
+    # traceback); the analysis refuses an array above its limit before allocating it.
+    from haptex_compile import line_analysis
+    from haptex_compile.errors import InputError
+    from haptex_compile.tables import line_sampler
+
+    nodes = np.array([[2.0, 2.0], [3.0, 2.5]])
+    speeds = np.array([12.0, 180.0])
+    assert np.isfinite(line_analysis.direction_powers(line_sampler(brownian_small), MODEL, SETTINGS, nodes, 0.0, speeds)).all()
+    monkeypatch.setattr(line_analysis, "MAX_ARRAY_BYTES", 2 ** 20)
+    with pytest.raises(InputError, match=r"the surface \(250 x 250 px of 20 um, 5 x 5 mm\) is out of scale for the tables: its lines"):
+        line_analysis.direction_powers(line_sampler(brownian_small), MODEL, SETTINGS, nodes, 0.0, speeds)
