@@ -44,7 +44,7 @@ GROUP_LENGTH_RATIO = 1.3  # speeds share a line transform while their lines diff
 # or whose extent is far larger (grids of millions of footprint cells) would otherwise exhaust
 # the machine's memory (a direction's peak is a few times its largest array, and two run at
 # once); they are refused with the sizes instead. The largest seen on the bench's surfaces and
-# the real photos: 83 MB (lines of a 1024 px surface of 10 um pixels) and 4 MB (grids).
+# the real photos: 83 MB (lines of a 1024 px surface of 10 um pixels) and 8 MB (grids, as float64).
 MAX_ARRAY_BYTES = 2 ** 30
 
 
@@ -210,7 +210,8 @@ def direction_powers(
         base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
         bounds = offset + np.cumsum([0] + keeps)
         offset = int(bounds[-1])
-        _check_size(4 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
+        # (8 bytes a value: the nodes' sparse read below makes a float64 copy of the grids)
+        _check_size(8 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
                     "crop it or check its pixel size")
         coeffs = np.empty((len(group), 2, gj, gk), dtype=np.float32)
         n_outs = [scipy.fft.next_fast_len(n_keep + kk + 2) for n_keep in keeps]
