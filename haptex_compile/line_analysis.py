@@ -114,7 +114,7 @@ def _check_size(n_bytes: int, sampler: LineSampler, what: str, advice: str) -> N
     """Raise :class:`InputError` when an array of `n_bytes` would exceed ``MAX_ARRAY_BYTES``."""
     if n_bytes > MAX_ARRAY_BYTES:
         surface = sampler.surface
-        rows, cols = surface.height_um.shape
+        rows, cols = surface.shape
         px_mm = surface.pixel_size_mm
         raise InputError(
             None, f"the surface ({cols} x {rows} px of {px_mm * 1000:.4g} um, {cols * px_mm:.4g} x {rows * px_mm:.4g} mm)"
