@@ -42,23 +42,27 @@ def test_asset_gets_the_permissions_of_a_plainly_created_file(asset, tmp_path):
     assert (asset.stat().st_mode & 0o777) == (probe.stat().st_mode & 0o777)
 
 
-def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path):
+def test_photo_with_kes_takes_its_height_scale_from_smd(tmp_path, scene_file):
     """``haptex-compile fabric.png --kes fabric.kes.json``: geometry from the photo, scale from SMD.
 
     One factor scales the recovered relief (the photo fixes the warp/weft anisotropy), so the
     simulated KES measurement of the stored heights must return the geometric mean of the
-    given SMDs.
+    given SMDs. (The small scene: the tables do not enter the scale.)
     """
     import cv2
 
     from haptex_compile.kes import simulate_kes_smd
+    from haptex_compile.shading import Light, render_lambertian
     from haptex_compile.synth_images import weave_image
 
     photo = tmp_path / "weave.png"
-    cv2.imwrite(str(photo), np.round(255 * weave_image((192, 192), (16.0, 0.0), (0.0, 12.0), kind="plain")).astype(np.uint8))
+    relief_um = 12.0 * weave_image((192, 192), (16.0, 0.0), (0.0, 12.0), kind="plain")
+    shading = render_lambertian(relief_um, 20.0, Light(40.0, 200.0), 0.8)
+    cv2.imwrite(str(photo), np.round(255 * np.clip(shading, 0.0, 1.0)).astype(np.uint8))
     kes = Path(__file__).resolve().parents[1] / "samples" / "kes" / "cotton_poplin.kes.json"
     out = tmp_path / "weave.tact.h5"
-    r = run("haptex-compile", str(photo), "-o", str(out), "--pixel-size", "20um", "--kes", str(kes), "-q")
+    r = run("haptex-compile", str(photo), "-o", str(out), "--pixel-size", "20um", "--kes", str(kes), "-q",
+            "--scene", str(scene_file))
     assert r.returncode == 0, r.stderr
     with h5py.File(out) as f:
         height = f["surface/height"][()].astype(float)

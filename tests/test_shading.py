@@ -1756,10 +1756,15 @@ def test_a_larger_tiles_light_is_searched_again_at_full_resolution(monkeypatch):
     h = ts.woven_like((512, 512), PX)
     img = render_lambertian(h, PX, Light(15.0, 30.0), 0.8, periodic=True)
     full, final = shading_light.FULL_SIDE_PX, shading_light.FINAL_SIDE_PX
-    lights = {}
-    for side in (full, final):  # final: no full-resolution stage
-        monkeypatch.setattr(shading_light, "FULL_SIDE_PX", side)
-        lights[side], _ = estimate_light(img)
+    # The final stage's light is what the search returns without the full-resolution stage
+    # (FULL_SIDE_PX = FINAL_SIDE_PX): it is taken here on its way out of the one search.
+    stage_lights = []
+    well_below = shading_light._well_below_the_bound
+    monkeypatch.setattr(shading_light, "_well_below_the_bound",
+                        lambda *a: stage_lights.append(well_below(*a)) or stage_lights[-1])
+    lights = {full: estimate_light(img)[0]}
+    (at_final,) = stage_lights
+    lights[final] = Light(at_final.slant, at_final.tilt)
     assert abs(lights[full].slant_deg - 15.0) <= 1.0
     assert tilt_axis_difference_deg(lights[full].tilt_deg, 30.0) <= 1.5
     assert tilt_axis_difference_deg(lights[final].tilt_deg, 30.0) > 5.0
