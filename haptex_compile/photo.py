@@ -67,6 +67,11 @@ def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_si
 
 
 ROUGHNESS_CELL_MM = 4.0  # the roughness repeats on a super-cell about this large (or what fits)
+# The periodic window's pixels at most (64 Mi: 256 MiB a float32 copy; the shading solve holds
+# about 20). Its side is ROUGHNESS_CELL_MM or more, so pixels finer than about 0.5 um would make
+# it larger: such a pixel size is refused before anything is painted (at 0.001 um the painted
+# window asked for 58 TiB; at 2 um, 2000 x 2002 px, the tables took over 10 minutes).
+MAX_WINDOW_PIXELS = 2 ** 26
 # Samples per px of the tile the shading is solved on, and of the solved heights' average: at
 # 1 sample per px the two bicubic resamplings blur a fine weave's shading (a plain weave of
 # 12 px cells: 5.2 % of the image's variance lost, 3.0 % at 2 samples per px). Measured on
@@ -178,6 +183,17 @@ def coherent_region(grey: np.ndarray, flat: np.ndarray, lattice, seed: int = 0) 
     return chosen
 
 
+def _check_window_pixels(spec: str, pixel_size_um: float, rows: int, cols: int, at_least: bool = False) -> None:
+    """Refuse a periodic window of more than ``MAX_WINDOW_PIXELS`` (an implausible pixel size);
+    `at_least`: `rows` x `cols` is the smallest the window can be."""
+    if rows * cols > MAX_WINDOW_PIXELS:
+        raise InputError(spec, f"at {pixel_size_um:g} um pixels the surface would be a periodic window of"
+                               f" {'at least ' if at_least else ''}{cols} x {rows} px (the roughness repeats on"
+                               f" {ROUGHNESS_CELL_MM:g} mm),"
+                               f" above {MAX_WINDOW_PIXELS / 2 ** 20:.0f} Mpx; check the pixel size (--pixel-size or"
+                               " the image's metadata)")
+
+
 def photo_source(spec: str, options: SourceOptions) -> SourceResult:
     """Compile-side pipeline for a photograph file."""
     from haptex_compile.io_images import read_image
@@ -241,8 +257,12 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
     # tile (better posed than a whole photo with free edges, and smaller), the roughness repeats
     # on it, and the tables take their fast path. Lattices with no such window: the whole image,
     # with the roughness on a super-cell of the lattice.
-    window = periodic_window(lattice.basis_px, min_px=int(np.ceil(ROUGHNESS_CELL_MM * 1000.0 / pixel_size_um)),
+    min_px = int(np.ceil(ROUGHNESS_CELL_MM * 1000.0 / pixel_size_um))
+    _check_window_pixels(spec, pixel_size_um, min_px, min_px, at_least=True)
+    window = periodic_window(lattice.basis_px, min_px=min_px,
                              max_px=max(1024, int(np.ceil(ROUGHNESS_CELL_MM * 2000.0 / pixel_size_um))))
+    if window is not None:
+        _check_window_pixels(spec, pixel_size_um, *window[1])
     sfs_tile = average_tile(flat, lattice, samples_per_px=SFS_SAMPLES_PER_PX)
     if window is not None:
         basis, (rows, cols) = window

@@ -281,3 +281,23 @@ def test_the_pipeline_logs_each_stage_time_for_verbose_runs_and_keeps_it_out_of_
     assert any(m.startswith(f"timed: heights from shading on {solved_on} in ") for m in stages), stages
     assert not any("estimated" in m for m in stages)  # the light was given: no search, none logged
     assert not re.search(r"\bin \d+\.\d s\b", repr(result.report))  # no time in the report
+
+
+def test_a_pixel_size_that_makes_the_window_too_large_is_refused_before_painting(monkeypatch):
+    # The periodic window is ROUGHNESS_CELL_MM or more a side: at 0.001 um pixels, 4e6 px (the
+    # painted window asked for 58 TiB). Refused by its smallest size, then by the window found.
+    import haptex_compile.photo as photo_module
+    from haptex_compile.errors import InputError
+
+    t1, t2 = (21.0, 0.0), (0.0, 16.5)
+    image = render_lambertian(lattice_relief((128, 128), t1, t2, amplitude_um=12.0), PIXEL_UM, Light(30.0, 200.0), 0.8)
+    options = SourceOptions(light=(30.0, 200.0), roughness="none", relief_um=10.0)
+    with pytest.raises(InputError, match=r"at 0\.001 um pixels .* at least 4000000 x 4000000 px .* check the pixel size"):
+        photo_surface(image, 0.001, options, "w.png", {})
+    # At 20 um the smallest window is 200 x 200 px; the window found is larger (exactly
+    # periodic on the lattice), so a limit between the two refuses it by its own size.
+    cols, rows = photo_surface(image, PIXEL_UM, options, "w.png", {}).report["surface"]["window_px"]
+    assert rows * cols > 200 * 200
+    monkeypatch.setattr(photo_module, "MAX_WINDOW_PIXELS", rows * cols - 1)
+    with pytest.raises(InputError, match=rf"at 20 um pixels the surface would be a periodic window of {cols} x {rows} px"):
+        photo_surface(image, PIXEL_UM, options, "w.png", {})
