@@ -361,7 +361,13 @@ def build_checked_tables(surface: Surface, model: TwoColourModel, settings: Anal
     directions and computed while the tables are assembled.
     """
     with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
-        return _build_checked_tables(surface, model, settings, scene, seed, progress, pool)
+        try:
+            return _build_checked_tables(surface, model, settings, scene, seed, progress, pool)
+        except BaseException:
+            # An error (a surface refused as out of scale, an interrupt) is not kept waiting
+            # for the queued check frames: only those already running finish.
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
 
 
 def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,

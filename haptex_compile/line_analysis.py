@@ -31,10 +31,9 @@ import scipy.fft
 from scipy import sparse
 
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.errors import InputError
 from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
 from haptex_compile.line_sampling import LineSampler
-from haptex_compile.surface import _bspline_weights
+from haptex_compile.surface import _bspline_weights, refuse_out_of_scale
 
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
@@ -112,14 +111,7 @@ def _bspline_matrix(y: np.ndarray | tuple[np.ndarray, np.ndarray], x: np.ndarray
 
 def _check_size(n_bytes: int, sampler: LineSampler, what: str, advice: str) -> None:
     """Raise :class:`InputError` when an array of `n_bytes` would exceed ``MAX_ARRAY_BYTES``."""
-    if n_bytes > MAX_ARRAY_BYTES:
-        surface = sampler.surface
-        rows, cols = surface.shape
-        px_mm = surface.pixel_size_mm
-        raise InputError(
-            None, f"the surface ({cols} x {rows} px of {px_mm * 1000:.4g} um, {cols * px_mm:.4g} x {rows * px_mm:.4g} mm)"
-            f" is out of scale for the tables: {what} would take {n_bytes / 2 ** 30:.1f} GiB,"
-            f" above {MAX_ARRAY_BYTES / 2 ** 30:.0f} GiB per direction; {advice}")
+    refuse_out_of_scale(sampler.surface, n_bytes, MAX_ARRAY_BYTES, "the tables", what, "per direction", advice)
 
 
 def direction_powers(

@@ -22,11 +22,16 @@ from haptex_compile.frame_analysis import (
     frame_window,
     stretch_channel_power,
 )
-from haptex_compile.surface import Surface, sample_height
+from haptex_compile.surface import Surface, refuse_out_of_scale, sample_height
 
 Trajectory = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 _VELOCITY_DT_S = 1e-3
 _STILL_MM_S = 1e-6
+# The largest array of footprint path heights one frame may sample (bytes, float64); a frame's
+# peak is about 7 times it (measured at 0.2-20 um pixels, 10-200 mm/s). Pixels far finer than
+# the scene needs asked for tens of GB (a 16 px map of 0.001 um pixels: killed at 24 GB, both
+# of the compiler's check threads at once); such a frame is refused with the sizes instead.
+MAX_STROKE_BYTES = 2 ** 28
 
 
 @dataclass(frozen=True)
@@ -75,11 +80,14 @@ def point_intensities(
     n_out = 2 * int(np.ceil(half_s * ANALYSIS_RATE_HZ / 2.0)) + 2
     n_fine = n_out * decimation
     fine_dt = 1.0 / (ANALYSIS_RATE_HZ * decimation)
+    b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
+    refuse_out_of_scale(surface, 8 * b.size * n_fine, MAX_STROKE_BYTES, "the reference renderer",
+                        f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)",
+                        "give it coarser pixels (resample it) or check its pixel size")
     offsets = (np.arange(n_fine) - (n_fine - 1) / 2.0) * fine_dt
     window = frame_window(offsets[::decimation], settings.frame_ms, sigma_t)
     u, v = path(t_centre_s + offsets)
     normal = np.array([-vel[1], vel[0]]) / speed
-    b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
     heights = sample_height(surface, u[None, :] + b[:, None] * normal[0], v[None, :] + b[:, None] * normal[1])
     pp, pnp = stretch_channel_power(heights, fine_dt, decimation, window, model, speed, px_mm)
     return float(np.sqrt(np.dot(g, pp))), float(np.sqrt(np.dot(g, pnp)))

@@ -27,6 +27,8 @@ import numpy as np
 import scipy.fft
 from scipy import ndimage
 
+from haptex_compile.errors import InputError
+
 
 @dataclass(frozen=True)
 class Surface:
@@ -90,6 +92,22 @@ class Surface:
 
     def origin_px(self) -> np.ndarray:
         return np.zeros(2) if self.cell_origin_px is None else np.asarray(self.cell_origin_px, float)
+
+
+def refuse_out_of_scale(surface: Surface, n_bytes: int, limit_bytes: int, stage: str, what: str, per: str,
+                        advice: str) -> None:
+    """Raise :class:`InputError` when an array of `n_bytes` that `stage` would make for
+    `surface` exceeds `limit_bytes` (`per`: of what unit of work), before it is allocated:
+    pixels far finer (or an extent far larger) than the scene needs would otherwise exhaust the
+    machine's memory. The message gives the surface's size and pixel size, `what` the array
+    is, and the `advice`."""
+    if n_bytes > limit_bytes:
+        rows, cols = surface.shape
+        px_mm = surface.pixel_size_mm
+        raise InputError(
+            None, f"the surface ({cols} x {rows} px of {px_mm * 1000:.4g} um, {cols * px_mm:.4g} x {rows * px_mm:.4g} mm)"
+            f" is out of scale for {stage}: {what} would take {n_bytes / 2 ** 30:.1f} GiB, above"
+            f" {limit_bytes / 2 ** 30:.3g} GiB {per}; {advice}")
 
 
 def periodic_surface_from_tile(height_um: np.ndarray, pixel_size_um: float) -> Surface:

@@ -131,6 +131,32 @@ def test_bad_input_is_one_line_exit_1_and_no_output(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npy", "out.tact.h5"]  # no temp left
 
 
+def test_a_map_of_implausibly_fine_pixels_is_one_line_and_small(tmp_path):
+    # A 16 px map at 0.001 um pixels: the tables refuse its lines (11.7 GiB), and the check
+    # frames queued beside them are refused too, or cancelled, instead of sampling strokes of
+    # 6e7 pixels (killed at 24 GB). Run under a 4 GiB address-space limit, so that a
+    # regression fails here (its threads fill the limit) rather than taking the machine.
+    import os
+    import resource
+
+    npy = tmp_path / "fine.npy"
+    np.save(npy, np.random.default_rng(0).normal(size=(16, 16)))
+    out, err = tmp_path / "fine.tact.h5", tmp_path / "stderr.txt"
+    limit = 4 * 2 ** 30
+    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
+    with open(err, "w") as stderr:
+        child = subprocess.Popen([sys.executable, "-c", code, str(npy), "-o", str(out), "--pixel-size", "0.001um", "-q"],
+                                 stdout=subprocess.DEVNULL, stderr=stderr,
+                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
+        _, status, usage = os.wait4(child.pid, 0)  # the child's own peak memory
+        child.returncode = os.waitstatus_to_exitcode(status)
+    assert child.returncode == 1, err.read_text()
+    (line,) = err.read_text().strip().splitlines()
+    assert "fine.npy: the surface (16 x 16 px of 0.001 um" in line and "is out of scale" in line
+    assert not out.exists()
+    assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
+
+
 def test_debug_shows_traceback(tmp_path):
     r = run("haptex-compile", str(tmp_path / "missing.png"), "-o", str(tmp_path / "x.tact.h5"), "--debug")
     assert r.returncode != 0 and "Traceback" in r.stderr

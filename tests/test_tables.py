@@ -401,3 +401,77 @@ def test_a_surface_out_of_scale_for_the_tables_is_refused_with_its_sizes(brownia
     monkeypatch.setattr(line_analysis, "MAX_ARRAY_BYTES", 2 ** 20)
     with pytest.raises(InputError, match=r"the surface \(250 x 250 px of 20 um, 5 x 5 mm\) is out of scale for the tables: its lines"):
         line_analysis.direction_powers(line_sampler(brownian_small), MODEL, SETTINGS, nodes, 0.0, speeds)
+
+
+def test_a_frame_out_of_scale_for_the_reference_renderer_is_refused_before_sampling(monkeypatch):
+    # A 16 px map of 0.001 um pixels: one frame's stroke at 200 mm/s spans 0.3 s, 60 mm, which
+    # is 6e7 of its pixels; the reference renderer (the compiler's check, haptex-play --mode
+    # direct) sampled it at that step on 25 footprint paths and was killed at 24 GB. It is
+    # refused with the sizes before anything of that size is made.
+    import re
+    import tracemalloc
+
+    from haptex_compile import render
+    from haptex_compile.errors import InputError
+
+    surf = Surface(np.random.default_rng(2).normal(size=(16, 16)), 0.001)
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError) as refused:
+            point_intensities(surf, MODEL, SETTINGS, straight_path(0.0, 0.0, 200.0, 30.0), 0.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 ** 20
+    m = re.fullmatch(r"the surface \(16 x 16 px of 0\.001 um, 1\.6e-05 x 1\.6e-05 mm\) is out of scale for the reference"
+                     r" renderer: the heights of (\d+) x (\d+) path samples would take ([0-9.]+) GiB, above 0\.25 GiB per"
+                     r" frame \(at 200 mm/s\); give it coarser pixels \(resample it\) or check its pixel size",
+                     str(refused.value))
+    assert m, str(refused.value)
+    paths, samples = int(m.group(1)), int(m.group(2))
+    assert samples * 1e-6 >= 0.3 * 200.0  # the stroke (mm) at a step no longer than a pixel
+    assert float(m.group(3)) == pytest.approx(8 * paths * samples / 2 ** 30, abs=0.05)
+    # The limit is on that array: a frame of 20 um pixels passes; under a limit one byte below
+    # its heights it is refused.
+    ok = Surface(np.random.default_rng(2).normal(size=(64, 64)), 20.0)
+    path = straight_path(0.3, 0.3, 80.0, 30.0)
+    monkeypatch.setattr(render, "MAX_STROKE_BYTES", 0)
+    with pytest.raises(InputError, match="reference renderer") as refused:
+        point_intensities(ok, MODEL, SETTINGS, path, 0.0)
+    paths, samples = (int(v) for v in re.search(r"the heights of (\d+) x (\d+)", str(refused.value)).groups())
+    monkeypatch.setattr(render, "MAX_STROKE_BYTES", 8 * paths * samples - 1)
+    with pytest.raises(InputError, match="reference renderer"):
+        point_intensities(ok, MODEL, SETTINGS, path, 0.0)
+    monkeypatch.setattr(render, "MAX_STROKE_BYTES", 8 * paths * samples)
+    assert np.isfinite(point_intensities(ok, MODEL, SETTINGS, path, 0.0)).all()
+
+
+def test_a_refused_surface_does_not_wait_for_the_queued_check_frames(brownian_small, monkeypatch):
+    # The check's reference frames are queued behind the tables' directions on the same two
+    # threads; when the tables fail (a surface out of scale), the queued frames are cancelled:
+    # only the two already running finish. Each frame here takes 0.5 s, and a round has dozens.
+    import time
+
+    from haptex_compile import compile as compile_module
+    from haptex_compile.errors import InputError
+
+    started = []
+
+    def slow_reference(*args):
+        started.append(1)
+        time.sleep(0.5)
+        return 1.0, 1.0
+
+    def failing_tables(*args, after_submit=None, **kwargs):
+        after_submit()
+        time.sleep(0.1)  # the two threads take their first frames
+        raise InputError(None, "out of scale")
+
+    monkeypatch.setattr(compile_module, "reference_amplitudes", slow_reference)
+    monkeypatch.setattr(compile_module, "build_tables", failing_tables)
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match="out of scale"):
+        build_checked_tables(brownian_small, MODEL, SETTINGS, default_scene())
+    assert time.perf_counter() - t0 < 2.0
+    time.sleep(0.6)
+    assert len(started) == compile_module.CHECK_WORKERS < 8
