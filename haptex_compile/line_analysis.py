@@ -188,12 +188,17 @@ def direction_powers(
         kk = int(np.ceil(xi_cut * length_mm))
         kj = int(np.ceil(xi_cut * n_rows * px * (abs(frame.sin_d) + frame.cos_d)))
         kj = min(kj, (n_rows - 1) // 2)
+        gj = scipy.fft.next_fast_len(2 * (2 * kj + 1))
+        gk = scipy.fft.next_fast_len(2 * (2 * kk + 1), real=True)
+        # Checked before the kernels are made: they take about a quarter of the grids' values
+        # each, and several are alive at once (8 bytes a value: the nodes' sparse read below
+        # makes a float64 copy of the grids).
+        _check_size(8 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
+                    "crop it or check its pixel size")
         mj = np.concatenate([np.arange(kj + 1), np.arange(-kj, 0)])
         xi_a = np.arange(kk + 1) / length_mm
         xi_b = (mj[:, None] / n_rows - xi_a[None, :] * px * frame.sin_d) / (px * frame.cos_d)
         across = across_kernel_ft(xi_b, sigma)
-        gj = scipy.fft.next_fast_len(2 * (2 * kj + 1))
-        gk = scipy.fft.next_fast_len(2 * (2 * kk + 1), real=True)
         rows_dst = np.concatenate([np.arange(kj + 1), gj - np.arange(kj, 0, -1)])
         # Dividing by the discrete B-spline's transform makes the inverse transform return the
         # grid's cubic B-spline coefficients directly (the prefilter, done where it is free).
@@ -202,9 +207,6 @@ def direction_powers(
         base = (across * prefilter * (gj * gk / n_rows)).astype(np.float32)
         bounds = offset + np.cumsum([0] + keeps)
         offset = int(bounds[-1])
-        # (8 bytes a value: the nodes' sparse read below makes a float64 copy of the grids)
-        _check_size(8 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
-                    "crop it or check its pixel size")
         coeffs = np.empty((len(group), 2, gj, gk), dtype=np.float32)
         n_outs = [scipy.fft.next_fast_len(n_keep + kk + 2) for n_keep in keeps]
         zbuf = np.empty(n_rows * max(n_outs), dtype=np.complex64)  # reused by every pass (transformed in place)

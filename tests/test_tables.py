@@ -475,3 +475,26 @@ def test_a_refused_surface_does_not_wait_for_the_queued_check_frames(brownian_sm
     assert time.perf_counter() - t0 < 2.0
     time.sleep(0.6)
     assert len(started) == compile_module.CHECK_WORKERS < 8
+
+
+def test_footprint_grids_out_of_scale_are_refused_before_their_kernels_are_made():
+    # Pixels of 1 km (a unit mistaken): a 128 px map took 6.3 GB in the grids' kernels (each
+    # about a quarter of the grids' values, several alive at once) before the grids' own size
+    # was checked. The check comes first now; on 32 px the kernels made 137 MB first.
+    import tracemalloc
+
+    from haptex_compile import line_analysis
+    from haptex_compile.errors import InputError
+    from haptex_compile.tables import line_sampler
+
+    surf = Surface(np.random.default_rng(1).normal(size=(32, 32)), 1e6)
+    ext = 31 * 1000.0
+    nodes = np.array([[0.0, 0.0], [ext, ext], [ext, 0.0]])
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match=r"its footprint grids \(8 x 2 x \d+ x \d+\) would take [0-9.]+ GiB"):
+            line_analysis.direction_powers(line_sampler(surf), MODEL, SETTINGS, nodes, 0.0, np.geomspace(150.0, 190.0, 8))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2 ** 20
