@@ -67,8 +67,8 @@ def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_si
 
 
 ROUGHNESS_CELL_MM = 4.0  # the roughness repeats on a super-cell about this large (or what fits)
-# The periodic window's pixels at most (64 Mi: 256 MiB a float32 copy; the shading solve holds
-# about 20). Its side is ROUGHNESS_CELL_MM or more, so pixels finer than about 0.5 um would make
+# The periodic window's pixels at most (64 Mi: 256 MiB a float32 copy, of which the shading
+# solve and the tables hold many). Its side is ROUGHNESS_CELL_MM or more, so pixels finer than about 0.5 um would make
 # it larger: such a pixel size is refused before anything is painted (at 0.001 um the painted
 # window asked for 58 TiB; at 2 um, 2000 x 2002 px, the tables took over 10 minutes).
 MAX_WINDOW_PIXELS = 2 ** 26
