@@ -407,14 +407,16 @@ def test_a_frame_out_of_scale_for_the_reference_renderer_is_refused_before_sampl
     # A 16 px map of 0.001 um pixels: one frame's stroke at 200 mm/s spans 0.3 s, 60 mm, which
     # is 6e7 of its pixels; the reference renderer (the compiler's check, haptex-play --mode
     # direct) sampled it at that step on 25 footprint paths and was killed at 24 GB. It is
-    # refused with the sizes before anything of that size is made.
+    # refused with the sizes before anything of that size is made. Here at 0.2 um pixels
+    # under a 16 MiB limit (66 MB of heights: a regression allocates about 0.5 GB, not 24).
     import re
     import tracemalloc
 
     from haptex_compile import render
     from haptex_compile.errors import InputError
 
-    surf = Surface(np.random.default_rng(2).normal(size=(16, 16)), 0.001)
+    monkeypatch.setattr(render, "MAX_STROKE_BYTES", 2 ** 24)
+    surf = Surface(np.random.default_rng(2).normal(size=(16, 16)), 0.2)
     tracemalloc.start()
     try:
         with pytest.raises(InputError) as refused:
@@ -423,13 +425,13 @@ def test_a_frame_out_of_scale_for_the_reference_renderer_is_refused_before_sampl
     finally:
         tracemalloc.stop()
     assert peak < 2 ** 20
-    m = re.fullmatch(r"the surface \(16 x 16 px of 0\.001 um, 1\.6e-05 x 1\.6e-05 mm\) is out of scale for the reference"
-                     r" renderer: the heights of (\d+) x (\d+) path samples would take ([0-9.]+) GiB, above 0\.25 GiB per"
-                     r" frame \(at 200 mm/s\); give it coarser pixels \(resample it\) or check its pixel size",
+    m = re.fullmatch(r"the surface \(16 x 16 px of 0\.2 um, 0\.0032 x 0\.0032 mm\) is out of scale for the reference"
+                     r" renderer: the heights of (\d+) x (\d+) path samples would take ([0-9.]+) GiB, above 0\.0156 GiB"
+                     r" per frame \(at 200 mm/s\); give it coarser pixels \(resample it\) or check its pixel size",
                      str(refused.value))
     assert m, str(refused.value)
     paths, samples = int(m.group(1)), int(m.group(2))
-    assert samples * 1e-6 >= 0.3 * 200.0  # the stroke (mm) at a step no longer than a pixel
+    assert samples * 0.2e-3 >= 0.3 * 200.0  # the stroke (mm) at a step no longer than a pixel
     assert float(m.group(3)) == pytest.approx(8 * paths * samples / 2 ** 30, abs=0.05)
     # The limit is on that array: a frame of 20 um pixels passes; under a limit one byte below
     # its heights it is refused.
