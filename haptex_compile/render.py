@@ -16,6 +16,7 @@ import numpy as np
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.frame_analysis import (
     ANALYSIS_RATE_HZ,
+    RESOLVED_STOP,
     AnalysisSettings,
     across_spacing_mm,
     footprint_offsets,
@@ -32,6 +33,11 @@ _STILL_MM_S = 1e-6
 # the scene needs asked for tens of GB (a 16 px map of 0.001 um pixels: killed at 24 GB, both
 # of the compiler's check threads at once); such a frame is refused with the sizes instead.
 MAX_STROKE_BYTES = 2 ** 28
+# A contactor this slow that every frequency the map resolves lies below this fraction of the
+# band's low edge feels nothing: the band's weight there is below 0.05^4 = 6.3e-6 (its f^4
+# roll-off). Its frame would span the footprint's passage (2 x 4 sigma / speed: 1000 s at
+# 0.001 mm/s) at the analysis rate, and a tracked finger at rest jitters at such speeds.
+CRAWL_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,8 @@ def point_intensities(
     if not np.isfinite(speed) or speed < _STILL_MM_S:
         return 0.0, 0.0
     px_mm = surface.pixel_size_mm
+    if speed * RESOLVED_STOP * 0.5 / px_mm < CRAWL_FRACTION * model.band.low_hz:
+        return 0.0, 0.0
     sigma_t = settings.footprint_sigma_mm / speed
     half_s = settings.window_half_s(speed) + settings.margin_ms / 1000.0
     decimation = max(1, int(np.ceil(speed / ANALYSIS_RATE_HZ / px_mm)))
@@ -81,9 +89,13 @@ def point_intensities(
     n_fine = n_out * decimation
     fine_dt = 1.0 / (ANALYSIS_RATE_HZ * decimation)
     b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
+    if decimation > 1:  # samples a pixel apart: the pixels set their count
+        advice = "give it coarser pixels (resample it) or check its pixel size"
+    else:  # samples at the analysis rate over the frame's window, long at a low speed
+        advice = (f"the frame's window spans {2 * half_s:.4g} s at that speed (the footprint's passage); raise the"
+                  " scene's slowest speed")
     refuse_out_of_scale(surface, 8 * b.size * n_fine, MAX_STROKE_BYTES, "the reference renderer",
-                        f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)",
-                        "give it coarser pixels (resample it) or check its pixel size")
+                        f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)", advice)
     offsets = (np.arange(n_fine) - (n_fine - 1) / 2.0) * fine_dt
     window = frame_window(offsets[::decimation], settings.frame_ms, sigma_t)
     u, v = path(t_centre_s + offsets)

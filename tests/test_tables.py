@@ -500,3 +500,42 @@ def test_footprint_grids_out_of_scale_are_refused_before_their_kernels_are_made(
     finally:
         tracemalloc.stop()
     assert peak < 16 * 2 ** 20
+
+
+def test_a_crawling_contactor_feels_nothing_and_a_long_frame_is_refused_for_its_speed():
+    # At 0.001 mm/s the footprint (4 sigma of 0.25 mm each side) takes 1000 s to pass: the
+    # frame's window would be 2 x (25 ms + 1000 s + the 300 ms margin) = 2001 s, sampled at the
+    # analysis rate (2048 Hz). On 20 um pixels every resolved frequency (0.9 x 25 cyc/mm) is
+    # then below 0.5 Hz, 1/20 of the band's low edge, where the band weighs under 6.3e-6:
+    # nothing is felt, and nothing is sampled.
+    import tracemalloc
+
+    from haptex_compile import render
+    from haptex_compile.errors import InputError
+
+    surf = Surface(brownian_surface((64, 64), 0.7, pixel_size_um=20.0, rms_um=5.0, seed=1), 20.0)
+    cutoff = render.CRAWL_FRACTION * MODEL.band.low_hz / (0.9 * 0.5 / 0.02)  # mm/s
+    tracemalloc.start()
+    try:
+        assert point_intensities(surf, MODEL, SETTINGS, straight_path(0.6, 0.6, 0.001, 30.0), 0.0) == (0.0, 0.0)
+        assert point_intensities(surf, MODEL, SETTINGS, straight_path(0.6, 0.6, 0.99 * cutoff, 30.0), 0.0) == (0.0, 0.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 ** 20
+    # Just above the cutoff the frame is rendered, and is negligible: no step where the cutoff
+    # lies. (On 200 um pixels, whose cutoff is 10 x higher and its window 10 x shorter; its
+    # intensity measured 1.3e-7 of that at 100 mm/s.)
+    coarse = Surface(brownian_surface((64, 64), 0.7, pixel_size_um=200.0, rms_um=5.0, seed=1), 200.0)
+    cutoff = render.CRAWL_FRACTION * MODEL.band.low_hz / (0.9 * 0.5 / 0.2)
+    assert point_intensities(coarse, MODEL, SETTINGS, straight_path(6.0, 6.0, 0.99 * cutoff, 30.0), 0.0) == (0.0, 0.0)
+    slow = point_intensities(coarse, MODEL, SETTINGS, straight_path(6.0, 6.0, 1.01 * cutoff, 30.0), 0.0)
+    felt = point_intensities(coarse, MODEL, SETTINGS, straight_path(6.0, 6.0, 100.0, 30.0), 0.0)
+    assert 0.0 < max(slow) < 1e-5 * max(felt)
+    # On 1 um pixels 0.005 mm/s is above the cutoff (0.0011 mm/s), and its 400 s window on
+    # 2001 paths one pixel apart would be 13 GB of heights: refused, and the speed named as
+    # the cause (the samples are the analysis rate's, not the pixels').
+    fine = Surface(np.random.default_rng(2).normal(size=(64, 64)), 1.0)
+    with pytest.raises(InputError, match=r"per frame \(at 0\.005 mm/s\); the frame's window spans 400\.\d s at that speed"
+                                         r" \(the footprint's passage\); raise the scene's slowest speed$"):
+        point_intensities(fine, MODEL, SETTINGS, straight_path(0.03, 0.03, 0.005, 30.0), 0.0)
