@@ -2,7 +2,8 @@
 
 Slow but direct: for each frame and contactor it samples the surface along the contactor's own
 path over a stretch reaching ``margin_ms`` beyond the frame window, at a fine step no longer
-than one pixel, and applies :mod:`haptex_compile.frame_analysis`. Tables are checked against
+than one pixel, and applies :mod:`haptex_compile.frame_analysis`. A contactor too slow for
+any frequency the map resolves to reach the band (``CRAWL_FRACTION``) feels nothing. Tables are checked against
 it (issue: tables) and ``haptex-play --mode direct`` uses it, so it has no dependency beyond
 numpy (the player loads it lazily).
 """
@@ -35,7 +36,7 @@ _STILL_MM_S = 1e-6
 MAX_STROKE_BYTES = 2 ** 28
 # A contactor this slow that every frequency the map resolves lies below this fraction of the
 # band's low edge feels nothing: the band's weight there is below 0.05^4 = 6.3e-6 (its f^4
-# roll-off). Its frame would span the footprint's passage (2 x 4 sigma / speed: 1000 s at
+# roll-off). Its frame would span the footprint's passage (2 x 4 sigma / speed: 2000 s at
 # 0.001 mm/s) at the analysis rate, and a tracked finger at rest jitters at such speeds.
 CRAWL_FRACTION = 0.05
 
