@@ -68,9 +68,10 @@ def relief_scale(options: SourceOptions, spec: str, height: np.ndarray, pixel_si
 
 ROUGHNESS_CELL_MM = 4.0  # the roughness repeats on a super-cell about this large (or what fits)
 # The periodic window's pixels at most (64 Mi: 256 MiB a float32 copy, of which the shading
-# solve and the tables hold many). Its side is ROUGHNESS_CELL_MM or more, so pixels finer than about 0.5 um would make
-# it larger: such a pixel size is refused before anything is painted (at 0.001 um the painted
-# window asked for 58 TiB; at 2 um, 2000 x 2002 px, the tables took over 10 minutes).
+# solve and the tables hold many). Its side is ROUGHNESS_CELL_MM or more, so pixels finer than
+# about 0.5 um would make it larger: such a pixel size is refused before anything is painted (at
+# 0.001 um the painted window asked for 58 TiB; at 2 um, 2000 x 2002 px, the tables took over 10
+# minutes).
 MAX_WINDOW_PIXELS = 2 ** 26
 # Samples per px of the tile the shading is solved on, and of the solved heights' average: at
 # 1 sample per px the two bicubic resamplings blur a fine weave's shading (a plain weave of

@@ -90,13 +90,15 @@ def point_intensities(
     n_fine = n_out * decimation
     fine_dt = 1.0 / (ANALYSIS_RATE_HZ * decimation)
     b, g = footprint_offsets(settings.footprint_sigma_mm, across_spacing_mm(settings.footprint_sigma_mm, px_mm, speed, model))
-    if decimation > 1:  # samples a pixel apart: the pixels set their count
-        advice = "give it coarser pixels (resample it) or check its pixel size"
-    else:  # samples at the analysis rate over the frame's window, long at a low speed
-        advice = (f"the frame's window spans {2 * half_s:.4g} s at that speed (the footprint's passage); raise the"
-                  " scene's slowest speed")
-    refuse_out_of_scale(surface, 8 * b.size * n_fine, MAX_STROKE_BYTES, "the reference renderer",
-                        f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)", advice)
+    n_bytes = 8 * b.size * n_fine
+    if n_bytes > MAX_STROKE_BYTES:  # (the message is made only then: direct playback calls this per frame)
+        if decimation > 1:  # samples a pixel apart: the pixels set their count
+            advice = "give it coarser pixels (resample it) or check its pixel size"
+        else:  # samples at the analysis rate over the frame's window, long at a low speed
+            advice = (f"the frame's window spans {2 * half_s:.4g} s at that speed (the footprint's passage); raise"
+                      " the scene's slowest speed")
+        refuse_out_of_scale(surface, n_bytes, MAX_STROKE_BYTES, "the reference renderer",
+                            f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)", advice)
     offsets = (np.arange(n_fine) - (n_fine - 1) / 2.0) * fine_dt
     window = frame_window(offsets[::decimation], settings.frame_ms, sigma_t)
     u, v = path(t_centre_s + offsets)
