@@ -6,7 +6,9 @@ u seen at direction d and speed s is a tone at s |cos d| / lambda).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -23,6 +25,19 @@ from haptex_compile.tables import Tables, build_tables, speed_midpoints_of, tabl
 
 MODEL = TwoColourModel()
 SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
+
+
+@contextlib.contextmanager
+def traced_peak():
+    """The peak of the Python-traced allocations (numpy's included) made in the block, in bytes:
+    ``with traced_peak() as peak: ...`` then ``peak[0]``."""
+    peak = [0]
+    tracemalloc.start()
+    try:
+        yield peak
+    finally:
+        peak[0] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
 
 
 def reference(surface: Surface, u: float, v: float, speed: float, direction: float,
@@ -410,21 +425,15 @@ def test_a_frame_out_of_scale_for_the_reference_renderer_is_refused_before_sampl
     # refused with the sizes before anything of that size is made. Here at 0.2 um pixels
     # under a 16 MiB limit (66 MB of heights: a regression allocates about 0.5 GB, not 24).
     import re
-    import tracemalloc
 
     from haptex_compile import render
     from haptex_compile.errors import InputError
 
     monkeypatch.setattr(render, "MAX_STROKE_BYTES", 2 ** 24)
     surf = Surface(np.random.default_rng(2).normal(size=(16, 16)), 0.2)
-    tracemalloc.start()
-    try:
-        with pytest.raises(InputError) as refused:
-            point_intensities(surf, MODEL, SETTINGS, straight_path(0.0, 0.0, 200.0, 30.0), 0.0)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < 2 ** 20
+    with traced_peak() as peak, pytest.raises(InputError) as refused:
+        point_intensities(surf, MODEL, SETTINGS, straight_path(0.0, 0.0, 200.0, 30.0), 0.0)
+    assert peak[0] < 2 ** 20
     m = re.fullmatch(r"the surface \(16 x 16 px of 0\.2 um, 0\.0032 x 0\.0032 mm\) is out of scale for the reference"
                      r" renderer: the heights of (\d+) x (\d+) path samples would take ([0-9.]+) GiB, above 0\.0156 GiB"
                      r" per frame \(at 200 mm/s\); give it coarser pixels \(resample it\) or check its pixel size",
@@ -483,8 +492,6 @@ def test_footprint_grids_out_of_scale_are_refused_before_their_kernels_are_made(
     # Pixels of 1 km (a unit mistaken): a 128 px map took 6.3 GB in the grids' kernels (each
     # about a quarter of the grids' values, several alive at once) before the grids' own size
     # was checked. The check comes first now; on 32 px the kernels made 137 MB first.
-    import tracemalloc
-
     from haptex_compile import line_analysis
     from haptex_compile.errors import InputError
     from haptex_compile.tables import line_sampler
@@ -492,14 +499,9 @@ def test_footprint_grids_out_of_scale_are_refused_before_their_kernels_are_made(
     surf = Surface(np.random.default_rng(1).normal(size=(32, 32)), 1e6)
     ext = 31 * 1000.0
     nodes = np.array([[0.0, 0.0], [ext, ext], [ext, 0.0]])
-    tracemalloc.start()
-    try:
-        with pytest.raises(InputError, match=r"its footprint grids \(8 x 2 x \d+ x \d+\) would take [0-9.]+ GiB"):
-            line_analysis.direction_powers(line_sampler(surf), MODEL, SETTINGS, nodes, 0.0, np.geomspace(150.0, 190.0, 8))
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < 16 * 2 ** 20
+    with traced_peak() as peak, pytest.raises(InputError, match=r"its footprint grids \(8 x 2 x \d+ x \d+\) would take [0-9.]+ GiB"):
+        line_analysis.direction_powers(line_sampler(surf), MODEL, SETTINGS, nodes, 0.0, np.geomspace(150.0, 190.0, 8))
+    assert peak[0] < 16 * 2 ** 20
 
 
 def test_a_crawling_contactor_feels_nothing_and_a_long_frame_is_refused_for_its_speed():
@@ -508,21 +510,15 @@ def test_a_crawling_contactor_feels_nothing_and_a_long_frame_is_refused_for_its_
     # analysis rate (2048 Hz). On 20 um pixels every resolved frequency (0.9 x 25 cyc/mm) is
     # then below 0.5 Hz, 1/20 of the band's low edge, where the band weighs under 6.3e-6:
     # nothing is felt, and nothing is sampled.
-    import tracemalloc
-
     from haptex_compile import render
     from haptex_compile.errors import InputError
 
     surf = Surface(brownian_surface((64, 64), 0.7, pixel_size_um=20.0, rms_um=5.0, seed=1), 20.0)
     cutoff = render.CRAWL_FRACTION * MODEL.band.low_hz / (0.9 * 0.5 / 0.02)  # mm/s
-    tracemalloc.start()
-    try:
+    with traced_peak() as peak:
         assert point_intensities(surf, MODEL, SETTINGS, straight_path(0.6, 0.6, 0.001, 30.0), 0.0) == (0.0, 0.0)
         assert point_intensities(surf, MODEL, SETTINGS, straight_path(0.6, 0.6, 0.99 * cutoff, 30.0), 0.0) == (0.0, 0.0)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < 2 ** 20
+    assert peak[0] < 2 ** 20
     # Just above the cutoff the frame is rendered, and is negligible: no step where the cutoff
     # lies. (On 200 um pixels, whose cutoff is 10 x higher and its window 10 x shorter; its
     # intensity measured 1.3e-7 of that at 100 mm/s.)
