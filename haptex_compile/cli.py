@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from playback.cli_common import EXIT_BAD_INPUT, common_options, show_progress
+from playback.cli_common import EXIT_BAD_INPUT, command, common_options, show_progress
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -65,7 +65,7 @@ def _one(job: dict) -> tuple[str, str | None]:
         return job["spec"], message if job["spec"] in message else f"{job['spec']}: {message}"
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@command()
 @click.argument("inputs", nargs=-1, required=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output asset (one input).")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Folder for the assets of many inputs (NAME.tact.h5).")

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from playback.cli_common import EXIT_BAD_INPUT, common_options
+from playback.cli_common import EXIT_BAD_INPUT, command, common_options
 
 
 def _upper(tables) -> str:
@@ -191,7 +191,7 @@ def record_summary(path: str) -> str:
     return "\n".join(lines)
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--validate", is_flag=True, help="Check each file against schemas/asset.schema.json and the reader; exit 1 if any fails.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Write a PNG of the asset (or playback record); needs matplotlib.")

@@ -6,12 +6,12 @@ import sys
 
 import click
 
-from playback.cli_common import common_options
+from playback.cli_common import command, common_options
 
 LOG = logging.getLogger("haptex.play")
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@command()
 @click.argument("asset", type=click.Path(dir_okay=False))
 @click.option("--device", "device", default="sim", show_default=True,
               help="sim (emulated controller via pyusb), usb, null, or file:PATH (raw packets).")

@@ -2,8 +2,8 @@
 
 ``-v/-q`` set the log level, ``--debug`` shows tracebacks. Expected failures
 (:class:`~playback.errors.HaptexError`, ``OSError``) become one line on stderr and exit
-status 1; usage errors exit 2 (click's convention). Progress bars are shown only when
-stderr is a terminal.
+status 1; usage errors (a bad option value, a missing argument) are one line too and exit 2
+(click's convention). Progress bars are shown only when stderr is a terminal.
 """
 from __future__ import annotations
 
@@ -20,6 +20,44 @@ from playback.errors import HaptexError
 LOG = logging.getLogger("haptex")
 EXIT_BAD_INPUT = 1
 EXIT_USAGE = 2
+
+
+class _OneLineUsageError(click.UsageError):
+    """A usage error shown as one line, ``PROG: error: MESSAGE (see PROG --help)``: click's own
+    display is three (usage, hint, error), and a batch log should hold one line per failure."""
+
+    def __init__(self, error: click.UsageError, prog: str) -> None:
+        super().__init__(error.format_message(), error.ctx)
+        self.prog = error.ctx.command_path if error.ctx is not None else prog
+
+    def show(self, file: Any = None) -> None:
+        message = " ".join(self.format_message().split())
+        click.echo(f"{self.prog}: error: {message} (see {self.prog} --help)", file=file, err=file is None)
+
+
+class OneLineUsageCommand(click.Command):
+    """A click command whose usage errors, from parsing or from the command's own checks, are
+    one line (:class:`_OneLineUsageError`); the exit status stays 2."""
+
+    def make_context(self, info_name: str | None, args: list[str], parent: click.Context | None = None,
+                     **extra: Any) -> click.Context:
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except click.UsageError as exc:
+            raise _OneLineUsageError(exc, info_name or self.name or "haptex") from None
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except click.UsageError as exc:
+            if isinstance(exc, _OneLineUsageError):
+                raise
+            raise _OneLineUsageError(exc, ctx.command_path) from None
+
+
+def command() -> Callable[[Callable[..., Any]], click.Command]:
+    """The decorator of the three tools' commands: ``-h/--help`` and one-line usage errors."""
+    return click.command(cls=OneLineUsageCommand, context_settings={"help_option_names": ["-h", "--help"]})
 
 
 def _configure_logging(verbose: int, quiet: int) -> None:

@@ -1,6 +1,7 @@
 """haptex-compile / haptex-inspect / haptex-play as a Makefile would use them."""
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -13,10 +14,12 @@ from asset_factory import TINY_SCENE as SCENE
 from asset_factory import TINY_SPEC as SPEC
 
 
+TOOL_MODULES = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compile.inspect_cli",
+                "haptex-play": "playback.cli"}
+
+
 def run(tool: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    module = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compile.inspect_cli",
-              "haptex-play": "playback.cli"}[tool]
-    code = f"import sys; from {module} import main; sys.argv[0] = {tool!r}; main()"
+    code = f"import sys; from {TOOL_MODULES[tool]} import main; sys.argv[0] = {tool!r}; main()"
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
@@ -165,8 +168,34 @@ def test_debug_shows_traceback(tmp_path):
 def test_usage_errors_exit_2(tmp_path):
     r = run("haptex-compile", SPEC, SPEC, "-o", str(tmp_path / "x.tact.h5"))
     assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        "haptex-compile: error: -o/--output takes one input; use --out-dir for several (see haptex-compile --help)"]
     r = run("haptex-compile", SPEC)
     assert r.returncode == 2
+
+
+@pytest.mark.parametrize("tool, args, fragment", [
+    ("haptex-compile", [SPEC, "--light", "95,30", "-o", "x.tact.h5"], "Invalid value for '--light': slant must be in [0, 90)"),
+    ("haptex-compile", [SPEC, "--pixel-size", "3furlong", "-o", "x.tact.h5"], "unknown length unit 'furlong'"),
+    ("haptex-compile", [SPEC, "--bogus"], "No such option '--bogus'"),
+    ("haptex-compile", [], "Missing argument 'INPUTS...'"),
+    ("haptex-compile", [SPEC], "give exactly one of -o/--output or --out-dir"),
+    ("haptex-inspect", ["a.tact.h5", "b.tact.h5", "--plot", "p.png"], "--plot takes one file"),
+    ("haptex-play", ["a.tact.h5", "--fast"], "give exactly one of --sweep, --trajectory or --live"),
+    ("haptex-play", ["a.tact.h5", "--max-frames", "two"], "Invalid value for '--max-frames'"),
+])
+def test_usage_errors_are_one_line(tmp_path, monkeypatch, tool, args, fragment):
+    # Usage errors from click's parsing and from the commands' own checks alike: one line that
+    # names the tool and the problem, exit status 2, nothing written.
+    from click.testing import CliRunner
+
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(importlib.import_module(TOOL_MODULES[tool]).main, args, prog_name=tool)
+    assert r.exit_code == 2
+    assert r.stdout == ""
+    [line] = r.stderr.strip().splitlines()
+    assert line.startswith(f"{tool}: error: ") and fragment in line and line.endswith(f"(see {tool} --help)")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("text, fragment", [
