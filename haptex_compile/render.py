@@ -4,8 +4,9 @@ Slow but direct: for each frame and contactor it samples the surface along the c
 path over a stretch reaching ``margin_ms`` beyond the frame window, at a fine step no longer
 than one pixel, and applies :mod:`haptex_compile.frame_analysis`. A contactor too slow for any
 frequency the map resolves to reach the band (``CRAWL_FRACTION``) feels nothing. Tables are
-checked against it (issue: tables) and ``haptex-play --mode direct`` uses it, so it has no
-dependency beyond numpy (the player loads it lazily).
+checked against it (issue: tables) and ``haptex-play --mode direct`` uses it. It needs the
+compiler's dependencies (scipy, through :mod:`haptex_compile.surface`): the player loads it
+lazily, only for ``--mode direct``, so that table playback stays on numpy, h5py and pyusb.
 """
 from __future__ import annotations
 
