@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import math
 import time
@@ -149,7 +150,8 @@ CHECK_FAMILIES = ("direction", "speed", "position", "stroke")
 
 def check_points(direction_deg: np.ndarray, speed_mm_s: np.ndarray, grid: TableGrid, seed: int = 0,
                  per_family: int = CHECK_SAMPLES_PER_FAMILY,
-                 direction_range_deg: tuple[float, float] | None = None) -> list[CheckPoint]:
+                 direction_range_deg: tuple[float, float] | None = None,
+                 computed_speed_mm_s: np.ndarray | None = None) -> list[CheckPoint]:
     """The random points at which :func:`check_tables` measures tables with these nodes.
 
     They depend on the nodes only, not on the table values, so the reference amplitudes there
@@ -163,6 +165,14 @@ def check_points(direction_deg: np.ndarray, speed_mm_s: np.ndarray, grid: TableG
         The tables' node grid.
     seed, per_family, direction_range_deg
         As for :func:`check_tables`.
+    computed_speed_mm_s : ndarray, optional
+        The speed nodes that were computed, if the stored ones include cubic midpoints
+        (:func:`~haptex_compile.tables.stored_speeds`); default: all stored speeds. Those
+        midpoints are between nodes: the speed and stroke families draw them (beside the
+        geometric midpoints between stored speeds), and the other families, which hold the
+        speed at a node, do not. Drawn as nodes, their cubic error counted as the position's
+        and the direction's: measured on a twill photo, the position family stayed at 2.2-2.9 %
+        while its grid was halved twice, and fell to 0.8 % once the speeds were.
 
     Returns
     -------
@@ -186,10 +196,17 @@ def check_points(direction_deg: np.ndarray, speed_mm_s: np.ndarray, grid: TableG
             return float(dirs[0] + rng.uniform(0, 180))
     else:
         mid_direction = _drawer(rng, mids, mid_p, even)
+    computed = speeds if computed_speed_mm_s is None else np.asarray(computed_speed_mm_s, dtype=float)
     if speeds.size > 1:
         s_mids, s_mid_p, _, s_node_p = speed_draws(speeds)
-        even_s = bool(np.allclose(s_mid_p, s_mid_p[0]) and np.allclose(s_node_p[1:-1], s_node_p[1]))
-        mid_speed, node_speed = _drawer(rng, s_mids, s_mid_p, even_s), _drawer(rng, speeds, s_node_p, even_s)
+        midpoints = ~np.isin(speeds, computed)
+        if midpoints.any():  # the cubic midpoints too, each as often as a node there would be
+            s_mids, s_mid_p = np.concatenate([s_mids, speeds[midpoints]]), np.concatenate([s_mid_p, s_node_p[midpoints]])
+            s_mid_p = s_mid_p / s_mid_p.sum()
+        c_node_p = speed_draws(computed)[3] if computed.size > 1 else np.ones(1)
+        even_s = bool(np.allclose(s_mid_p, s_mid_p[0]) and np.allclose(c_node_p[1:-1], c_node_p[1])
+                      and not midpoints.any())
+        mid_speed, node_speed = _drawer(rng, s_mids, s_mid_p, even_s), _drawer(rng, computed, c_node_p, even_s)
     else:
         mid_speed, node_speed = (lambda: float(speeds[0])), _drawer(rng, speeds, np.ones(1), True)
 
@@ -241,7 +258,8 @@ def check_stats(model: TwoColourModel, settings: AnalysisSettings, tables: Table
 
 def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
                  seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY,
-                 direction_range_deg: tuple[float, float] | None = None) -> dict[str, Any]:
+                 direction_range_deg: tuple[float, float] | None = None,
+                 computed_speed_mm_s: np.ndarray | None = None) -> dict[str, Any]:
     """Measure table playback against the reference renderer at random points between nodes.
 
     Three families of samples isolate where the error comes from: directions halfway between
@@ -251,10 +269,12 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     drawn with a probability proportional to its width, and a node with half the width of its
     two intervals, as strokes in random directions meet them. `direction_range_deg` (the
     scene's range) keeps the intervals within a partial range; by default the nodes wrap
-    around the half turn. The steps are :func:`check_points`, :func:`reference_amplitudes`
-    and :func:`check_stats`.
+    around the half turn. `computed_speed_mm_s`: the speeds computed, when the stored ones
+    include cubic midpoints (see :func:`check_points`). The steps are :func:`check_points`,
+    :func:`reference_amplitudes` and :func:`check_stats`.
     """
-    points = check_points(tables.direction_deg, tables.speed_mm_s, tables.grid, seed, per_family, direction_range_deg)
+    points = check_points(tables.direction_deg, tables.speed_mm_s, tables.grid, seed, per_family, direction_range_deg,
+                          computed_speed_mm_s)
     # The reference renderer's FFTs release the GIL: two threads use both cores.
     with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
         references = list(pool.map(functools.partial(reference_amplitudes, surface, model, settings), points))
@@ -287,25 +307,52 @@ def _axis_shares(stats: dict[str, Any]) -> dict[str, float]:
             "speed": math.sqrt(max(stats["rms_rel_error_speed"] ** 2 - pos**2, 0.0))}
 
 
-def axes_to_refine(stats: dict[str, Any], tolerance: float) -> list[str]:
-    """Which node axes to halve, and how often, so that the predicted RMS error falls below the tolerance.
+AXIS_GROWTH = {"direction": 2, "speed": 2, "position": 4}  # table values per halving of each axis
+PLAN_HALVINGS = 3  # halvings per axis that a plan looks ahead (8 x the nodes along directions or speeds)
+
+
+def axes_to_refine(stats: dict[str, Any], tolerance: float, room: float = math.inf,
+                   limits: dict[str, int] | None = None) -> list[str]:
+    """Which node axes to halve this round, and how often, so that the predicted RMS error falls below the tolerance.
 
     Each axis's own share of the error comes from :func:`_axis_shares`. Halving a step
-    divides linear-interpolation error by about 4 (by 3 here, to be safe); the axis with the
-    largest share is halved (at most ``MAX_HALVINGS_PER_ROUND`` times per round, so a first
-    round far off the mark does not cost a round per halving) until the shares left add up (in
-    quadrature) to 85 % of the tolerance. An axis appears in the list once per halving.
+    divides linear-interpolation error by about 4 (by 3 here, to be safe). The halvings are
+    planned to the end, not this round only: of the combinations of halvings per axis that fit
+    in `room` (the factor by which the tables may still grow, ``AXIS_GROWTH`` per halving)
+    and `limits` (the most halvings each axis has left; ``PLAN_HALVINGS`` by default), the
+    one with the fewest table values whose predicted shares add up (in quadrature) to 85 % of
+    the tolerance, or, when none does, the one of least predicted error. This round takes at
+    most ``MAX_HALVINGS_PER_ROUND`` of each axis's halvings (the others wait for the next
+    round's measurement), the axes with the largest shares first. Planning to the end keeps a
+    small share from being halved now with table values that the largest share needs in a
+    later round (measured on a slub weave photo: speed nodes doubled in the first round left no
+    room for the directions it then lacked). A share below a quarter of the tolerance is not
+    halved. An axis appears in the list once per halving.
     """
     share = _axis_shares(stats)
-    chosen: list[str] = []
-    while math.sqrt(sum(v * v for v in share.values())) > REFINE_BUDGET * tolerance:
-        # A share below a quarter of the tolerance is not worth doubling an axis for.
-        open_axes = [a for a in share if chosen.count(a) < MAX_HALVINGS_PER_ROUND and share[a] >= 0.25 * tolerance]
-        if not open_axes:
-            break
-        axis = max(open_axes, key=lambda a: share[a])
-        chosen.append(axis)
-        share[axis] /= 3.0
+    axes = list(share)
+    limits = {a: PLAN_HALVINGS for a in axes} if limits is None else limits
+    budget = REFINE_BUDGET * tolerance
+
+    def options(axis: str) -> list[int]:  # halvings worth taking: each on a share >= tolerance / 4
+        n = 0
+        while n < limits.get(axis, 0) and share[axis] / 3.0**n >= 0.25 * tolerance:
+            n += 1
+        return list(range(n + 1))
+
+    best: tuple[bool, float, float, tuple[int, ...]] | None = None
+    for counts in itertools.product(*(options(a) for a in axes)):
+        growth = math.prod(AXIS_GROWTH[a] ** n for a, n in zip(axes, counts))
+        if growth > room:
+            continue
+        error = math.sqrt(sum((share[a] / 3.0**n) ** 2 for a, n in zip(axes, counts)))
+        # Fitting the budget first, then the fewest values; else the least error, then values.
+        key = (error > budget, growth if error <= budget else error, error if error <= budget else growth, counts)
+        if best is None or key < best:
+            best = key
+    planned = dict(zip(axes, best[3])) if best is not None else {}
+    chosen = [a for a in sorted(axes, key=lambda a: -share[a])
+              for _ in range(min(planned.get(a, 0), MAX_HALVINGS_PER_ROUND))]
     return chosen or [max(share, key=lambda a: share[a])]
 
 
@@ -352,6 +399,25 @@ def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables:
     return split_speeds(speeds, colours, share, target, max_nodes)
 
 
+def _halvings_left(plan: NodePlan, grid: TableGrid, surface: Surface) -> dict[str, int]:
+    """How often each node axis may still be halved (for :func:`axes_to_refine`'s plan), by the
+    limits that :func:`build_checked_tables` applies: explicit nodes none; directions up to
+    ``MAX_DIRECTIONS`` and speeds up to 64 computed nodes (once more at least while below the
+    limits that allow a halving); the grid while its spacing exceeds two pixels and its nodes
+    stay within ``MAX_TABLE_NODES``."""
+    n_dir, n_speed = plan.directions_deg.size, plan.speeds_mm_s.size
+    left = {"direction": 0, "speed": 0, "position": 0}
+    if not plan.explicit_directions and n_dir < MAX_DIRECTIONS // 2:
+        left["direction"] = max(1, int(math.log2(MAX_DIRECTIONS / n_dir)))
+    if not plan.explicit_speeds and n_speed < 64:
+        left["speed"] = max(1, int(math.log2(64 / n_speed)))
+    if not plan.explicit_spacing:
+        spacing, nodes = grid.spacing_mm, grid.shape[0] * grid.shape[1]
+        while spacing > 2 * surface.pixel_size_mm and 4 * nodes <= MAX_TABLE_NODES and left["position"] < PLAN_HALVINGS:
+            spacing, nodes, left["position"] = spacing / 2, 4 * nodes, left["position"] + 1
+    return left
+
+
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
                          seed: int = 0, progress: Callable[[str], None] | None = None) -> tuple[Tables, dict[str, Any], NodePlan]:
     """Build tables, measure their error and refine nodes until the scene's tolerance is met.
@@ -382,7 +448,7 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
     for attempt in range(MAX_REFINEMENTS + 1):
         stored = stored_speeds(plan.speeds_mm_s, not plan.explicit_speeds)
         points = check_points(plan.directions_deg, stored, grid, seed + attempt,
-                              direction_range_deg=scene.direction_range_deg)
+                              direction_range_deg=scene.direction_range_deg, computed_speed_mm_s=plan.speeds_mm_s)
         pending: list = []
 
         def queue_references(points: list[CheckPoint] = points, pending: list = pending) -> None:
@@ -406,10 +472,11 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
         if stats["rms_rel_error"] <= tol:
             break
         refined = False
-        chosen = axes_to_refine(stats, tol)
+        n_dir, n_speed, n_nodes = plan.directions_deg.size, tables.speed_mm_s.size, grid.shape[0] * grid.shape[1]
+        chosen = axes_to_refine(stats, tol, room=MAX_TABLE_VALUES / (n_dir * n_speed * n_nodes),
+                                limits=_halvings_left(plan, grid, surface))
         # When no chosen axis can be refined (node limits, explicit nodes), try the others.
         fallback = [a for a in ("direction", "speed", "position") if a not in chosen]
-        n_dir, n_speed, n_nodes = plan.directions_deg.size, tables.speed_mm_s.size, grid.shape[0] * grid.shape[1]
 
         def fits(factor: int) -> bool:  # tables `factor` times larger stay under the value cap
             return factor * n_dir * n_speed * n_nodes <= MAX_TABLE_VALUES

@@ -15,13 +15,13 @@ import pytest
 
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.compile import (MAX_HALVINGS_PER_ROUND, _as_player_tables, axes_to_refine, build_checked_tables,
-                                   check_tables, relative_errors, rms_upper_bound)
+                                   check_points, check_tables, relative_errors, rms_upper_bound)
 from haptex_compile.fractal import brownian_surface
 from haptex_compile.frame_analysis import AnalysisSettings
 from haptex_compile.render import point_intensities, straight_path
 from haptex_compile.scene import default_scene
 from haptex_compile.surface import Surface, periodic_surface_from_tile, sample_height
-from haptex_compile.tables import Tables, build_tables, speed_midpoints_of, table_grid
+from haptex_compile.tables import Tables, build_tables, speed_midpoints_of, stored_speeds, table_grid
 
 MODEL = TwoColourModel()
 SETTINGS = AnalysisSettings(footprint_sigma_mm=0.25)
@@ -146,6 +146,28 @@ def test_gratings_have_their_closed_form_tables():
             assert np.allclose(tab.a320[di, si], want[1], rtol=0.01, atol=1e-3)
 
 
+def test_cubic_speed_midpoints_are_checked_as_between_nodes(brownian_small):
+    """Stored speeds include cubic midpoints, which were not computed: the families that hold
+    the speed at a node draw computed speeds only, and the speed and stroke families draw the
+    midpoints as well as the geometric means between stored speeds."""
+    computed = np.geomspace(10.0, 200.0, 8)
+    stored = stored_speeds(computed, True)
+    midpoints = stored[1::2]
+    grid = table_grid(brownian_small, 0.25)
+    points = check_points(np.arange(12) * 15.0, stored, grid, seed=3, per_family=400, computed_speed_mm_s=computed)
+    speeds = {f: np.array([s for fam, _, s, _ in points if fam == f]) for f in ("direction", "speed", "position", "stroke")}
+    for f in ("direction", "position"):
+        assert np.isin(speeds[f], computed).all()
+    between = np.sqrt(stored[:-1] * stored[1:])
+    for f in ("speed", "stroke"):
+        assert np.isin(speeds[f], np.concatenate([between, midpoints])).all()
+        # each midpoint as often as a node there (half its two intervals): 7 of 21 equal shares
+        assert np.isin(speeds[f], midpoints).mean() == pytest.approx(7 / 21, abs=0.07)
+    # Without the computed speeds every stored speed counts as a node (explicit speed lists).
+    plain = check_points(np.arange(12) * 15.0, stored, grid, seed=3, per_family=400)
+    assert np.isin([s for fam, _, s, _ in plain if fam == "position"], midpoints).any()
+
+
 def test_check_tables_measures_interpolation_between_nodes():
     """check_tables' families hit the mid-points between nodes; on a grating the error there is known.
 
@@ -209,9 +231,10 @@ def test_build_checked_tables_stores_what_check_tables_measures(brownian_tile):
     """The compiler renders each round's check references while it builds the tables; the stored
     statistics are still exactly those of :func:`check_tables` on the final tables (same seed)."""
     scene = dataclasses.replace(default_scene(), tolerance=0.05, speed_range_mm_s=(30.0, 120.0))
-    tables, stats, _ = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
+    tables, stats, plan = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
     last = len(stats["refinements"]) - 1
-    again = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=2 + last, direction_range_deg=scene.direction_range_deg)
+    again = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=2 + last, direction_range_deg=scene.direction_range_deg,
+                         computed_speed_mm_s=plan.speeds_mm_s)
     for key, value in again.items():
         assert stats[key] == value, key
 
@@ -251,18 +274,49 @@ def _predicted_after(stats: dict, axes: list[str]) -> float:
     return float(np.sqrt(sum((v / 3.0 ** axes.count(a)) ** 2 for a, v in share.items())))
 
 
-@pytest.mark.parametrize("stats, expected", [
-    # a fine weave's first round (cotton poplin): direction share 5.8 %, position 1.6 %, speed none
-    ({"rms_rel_error_position": 0.016, "rms_rel_error_direction": 0.0603, "rms_rel_error_speed": 0.0142},
-     ["direction", "direction", "position"]),
-    # only speed is off: speed alone
-    ({"rms_rel_error_position": 0.004, "rms_rel_error_direction": 0.005, "rms_rel_error_speed": 0.03}, ["speed"]),
-])
-def test_refinement_halves_each_axis_as_often_as_its_share_needs(stats, expected):
-    axes = axes_to_refine(stats, 0.02)
-    assert axes == expected
-    assert _predicted_after(stats, axes) <= 0.85 * 0.02
-    assert _predicted_after(stats, axes[:-1]) > 0.85 * 0.02  # no halving more than needed
+def _values_after(axes: list[str]) -> int:
+    """How many times the tables' values grow by halving `axes` (2 per direction or speed
+    halving, 4 per grid halving)."""
+    return 2 ** axes.count("direction") * 2 ** axes.count("speed") * 4 ** axes.count("position")
+
+
+def test_refinement_halves_each_axis_as_often_as_its_share_needs():
+    # Only speed is off (share 2.97 %): one halving (to 0.99 %) fits the budget of 1.7 %.
+    stats = {"rms_rel_error_position": 0.004, "rms_rel_error_direction": 0.005, "rms_rel_error_speed": 0.03}
+    assert axes_to_refine(stats, 0.02) == ["speed"]
+    assert _predicted_after(stats, ["speed"]) <= 0.85 * 0.02 < _predicted_after(stats, [])
+
+
+def test_refinement_plans_the_fewest_values_over_rounds():
+    # A fine weave's first round (cotton poplin): direction share 5.81 %, position 1.6 %, speed
+    # none. Three direction halvings fit the budget (0.22 and 1.6: 1.61 %) with 8 x the values;
+    # two direction halvings and a grid halving also fit (0.65 and 0.53: 0.84 %) with 16 x.
+    stats = {"rms_rel_error_position": 0.016, "rms_rel_error_direction": 0.0603, "rms_rel_error_speed": 0.0142}
+    plan = ["direction"] * 3
+    assert _predicted_after(stats, plan) <= 0.85 * 0.02 < _predicted_after(stats, ["direction"] * 2)
+    assert _values_after(plan) < _values_after(["direction", "direction", "position"])
+    # This round takes two of the three; the next round's measurement decides on the third.
+    assert axes_to_refine(stats, 0.02) == ["direction", "direction"] == plan[:MAX_HALVINGS_PER_ROUND]
+
+
+def test_refinement_keeps_the_room_for_the_largest_share():
+    # A slub weave photo's first round: direction share 18.86 %, speed 1.68 %, position 1.3 %.
+    stats = {"rms_rel_error_position": 0.013, "rms_rel_error_direction": 0.189, "rms_rel_error_speed": 0.0212}
+    # The plan: directions 3 times (0.70 %) and speeds once (0.56 %), with position's 1.3 %:
+    # 1.58 % in 16 x the values. The grid is not halved, nor speeds a second time, although
+    # the largest share stays above the budget after this round's two direction halvings.
+    plan = ["direction"] * 3 + ["speed"]
+    assert _predicted_after(stats, plan) <= 0.85 * 0.02
+    assert axes_to_refine(stats, 0.02) == ["direction", "direction", "speed"]
+    # With room for 10 x the values no plan fits the budget: the least error within it is the
+    # three direction halvings (2.23 %; two and a speed halving, also 8 x: 2.53 %).
+    assert _predicted_after(stats, ["direction"] * 3) < _predicted_after(stats, ["direction"] * 2 + ["speed"])
+    assert axes_to_refine(stats, 0.02, room=10.0) == ["direction", "direction"]
+    # With one direction halving left (the node limit) nothing fits either: the plan takes it
+    # and every halving of the others worth taking (speed 1.68 -> 0.56 -> 0.19 %, position
+    # 1.3 -> 0.43 %, none halved below a quarter of the tolerance).
+    limited = axes_to_refine(stats, 0.02, limits={"direction": 1, "speed": 3, "position": 3})
+    assert limited == ["direction", "speed", "speed", "position"]
 
 
 def test_refinement_halves_an_axis_at_most_twice_per_round():
@@ -297,7 +351,7 @@ def test_refinement_falls_back_to_another_axis(monkeypatch):
 
     surf = grating(lambda_mm=1.0, amp_um=5.0)
     scene = dataclasses.replace(default_scene(), tolerance=0.001, speeds_mm_s=(80.0,), grid_spacing_mm=0.25)
-    monkeypatch.setattr(compile_mod, "axes_to_refine", lambda stats, tol: ["position"])
+    monkeypatch.setattr(compile_mod, "axes_to_refine", lambda stats, tol, **limits: ["position"])
     monkeypatch.setattr(compile_mod, "MAX_REFINEMENTS", 1)
     _, stats, plan = build_checked_tables(surf, MODEL, SETTINGS, scene, seed=0)
     history = stats["refinements"]
