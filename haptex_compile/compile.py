@@ -27,6 +27,9 @@ from haptex_compile.tables import (MAX_TABLE_NODES, TableGrid, Tables, build_tab
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
+# Draws of check points added to a round whose measured error meets the tolerance while its 95 %
+# upper bound does not (see build_checked_tables); each is CHECK_SAMPLES_PER_FAMILY per family.
+CHECK_EXTRA_DRAWS = 3
 CHECK_WORKERS = 2
 # Refinement stops before the tables would hold more values than this per colour (64 MB as
 # float32; memory while compiling is several times that), and the asset says the tolerance
@@ -256,10 +259,15 @@ def check_stats(model: TwoColourModel, settings: AnalysisSettings, tables: Table
     return stats
 
 
+def draw_seed(seed: int, draw: int) -> int:
+    """The seed of a check's `draw`-th set of points (0: the first, `seed` itself)."""
+    return seed + 1_000_003 * draw
+
+
 def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, tables: Tables,
                  seed: int = 0, per_family: int = CHECK_SAMPLES_PER_FAMILY,
                  direction_range_deg: tuple[float, float] | None = None,
-                 computed_speed_mm_s: np.ndarray | None = None) -> dict[str, Any]:
+                 computed_speed_mm_s: np.ndarray | None = None, draws: int = 1) -> dict[str, Any]:
     """Measure table playback against the reference renderer at random points between nodes.
 
     Three families of samples isolate where the error comes from: directions halfway between
@@ -270,11 +278,13 @@ def check_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSett
     two intervals, as strokes in random directions meet them. `direction_range_deg` (the
     scene's range) keeps the intervals within a partial range; by default the nodes wrap
     around the half turn. `computed_speed_mm_s`: the speeds computed, when the stored ones
-    include cubic midpoints (see :func:`check_points`). The steps are :func:`check_points`,
+    include cubic midpoints (see :func:`check_points`). `draws` sets of points are pooled
+    (seeds from :func:`draw_seed`). The steps are :func:`check_points`,
     :func:`reference_amplitudes` and :func:`check_stats`.
     """
-    points = check_points(tables.direction_deg, tables.speed_mm_s, tables.grid, seed, per_family, direction_range_deg,
-                          computed_speed_mm_s)
+    points = [p for k in range(draws)
+              for p in check_points(tables.direction_deg, tables.speed_mm_s, tables.grid, draw_seed(seed, k), per_family,
+                                    direction_range_deg, computed_speed_mm_s)]
     # The reference renderer's FFTs release the GIL: two threads use both cores.
     with ThreadPoolExecutor(max_workers=CHECK_WORKERS) as pool:
         references = list(pool.map(functools.partial(reference_amplitudes, surface, model, settings), points))
@@ -460,12 +470,24 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
         # The player's interpolator copies the whole tables: made here, while the references finish.
         player = _as_player_tables(tables, settings.frame_ms)
         player.interpolator
-        stats = check_stats(model, settings, tables, points, [f.result() for f in pending], seed=seed + attempt,
-                            player=player)
+        references = [f.result() for f in pending]
+        stats = check_stats(model, settings, tables, points, references, seed=seed + attempt, player=player)
+        # A measured error within the tolerance whose upper bound is not: the check's few dozen
+        # points may have missed the rare large errors (heavy-tailed: on real photos, 5 % of
+        # the points carried 60-80 % of the squared error), so more points are drawn and pooled
+        # before the tables are taken (or refined, if the pooled error is above the tolerance).
+        draws = 1
+        while stats["rms_rel_error"] <= tol < stats["rms_rel_error_upper95"] and draws <= CHECK_EXTRA_DRAWS:
+            more = check_points(plan.directions_deg, stored, grid, draw_seed(seed + attempt, draws),
+                                direction_range_deg=scene.direction_range_deg, computed_speed_mm_s=plan.speeds_mm_s)
+            points, references = points + more, references + list(pool.map(reference, more))
+            stats = check_stats(model, settings, tables, points, references, seed=seed + attempt, player=player)
+            draws += 1
+        stats["check_draws"] = draws
         history.append({"directions": int(plan.directions_deg.size), "speeds": int(plan.speeds_mm_s.size),
                         "stored_speeds": int(tables.speed_mm_s.size),
                         "spacing_mm": float(grid.spacing_mm), "rms_rel_error": stats["rms_rel_error"],
-                        "max_rel_error": stats["max_rel_error"],
+                        "max_rel_error": stats["max_rel_error"], "n_check_samples": stats["n_check_samples"],
                         **{f"rms_rel_error_{k}": stats[f"rms_rel_error_{k}"] for k in ("direction", "speed", "position", "stroke")}})
         if progress:
             progress(f"tables {tables.a40.shape}: rms error {stats['rms_rel_error']:.3%}")

@@ -234,9 +234,27 @@ def test_build_checked_tables_stores_what_check_tables_measures(brownian_tile):
     tables, stats, plan = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
     last = len(stats["refinements"]) - 1
     again = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=2 + last, direction_range_deg=scene.direction_range_deg,
-                         computed_speed_mm_s=plan.speeds_mm_s)
+                         computed_speed_mm_s=plan.speeds_mm_s, draws=stats["check_draws"])
     for key, value in again.items():
         assert stats[key] == value, key
+
+
+def test_an_uncertain_pass_draws_more_check_points(brownian_tile, monkeypatch):
+    """A round whose measured error meets the tolerance while its upper bound does not pools
+    another draw of points before the tables are taken: here the bound is made 100 x the RMS
+    for one draw's 64 errors and the RMS itself for more, so exactly one draw is added."""
+    import haptex_compile.compile as compile_mod
+
+    monkeypatch.setattr(compile_mod, "rms_upper_bound",
+                        lambda errors, seed=0: float(np.sqrt(np.mean(np.square(errors)))) * (100.0 if len(errors) <= 64 else 1.0))
+    scene = dataclasses.replace(default_scene(), tolerance=0.05, speed_range_mm_s=(30.0, 120.0))
+    tables, stats, plan = build_checked_tables(brownian_tile, MODEL, SETTINGS, scene, seed=2)
+    assert stats["tolerance_met"] and stats["check_draws"] == 2 and stats["n_check_samples"] == 128
+    assert stats["refinements"][-1]["n_check_samples"] == 128
+    last = len(stats["refinements"]) - 1
+    pooled = check_tables(brownian_tile, MODEL, SETTINGS, tables, seed=2 + last, direction_range_deg=scene.direction_range_deg,
+                          computed_speed_mm_s=plan.speeds_mm_s, draws=2)
+    assert pooled["n_check_samples"] == 128 and pooled["rms_rel_error"] == stats["rms_rel_error"]
 
 
 def test_tables_from_a_shared_pool_equal_their_own(brownian_tile):
