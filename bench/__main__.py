@@ -208,8 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     timeout = args.timeout or TIMEOUT_S["quick" if args.quick else "full"]
     plots_dir = args.out.parent / "plots"
     plots_dir.mkdir(parents=True, exist_ok=True)
-    for old in plots_dir.glob("bench_*.png"):  # only what this runner writes
-        old.unlink()
+    for path in modules:  # the plots of the modules run now (a --only run keeps the others')
+        for old in plots_dir.glob(f"{path.stem}_*.png"):
+            old.unlink()
     facts = ru.machine_facts(REPO)
     t0 = time.perf_counter()
     results = []
