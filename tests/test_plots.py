@@ -353,7 +353,14 @@ def test_bench_runner_reports_successes_failures_and_timeouts(tmp_path):
     (bench / "bench_bad.py").write_text('"""Bad bench."""\ndef run(quick=False):\n    raise RuntimeError("no data\\nsecond line")\n')
     (bench / "bench_slow.py").write_text('"""Slow bench."""\nimport time\ndef run(quick=False):\n    time.sleep(30)\n    return "late"\n')
     out = tmp_path / "rep" / "REPORT.md"
+    # Plots left from earlier runs: the modules run now lose theirs, the others keep theirs (a
+    # report rerun in part still shows them).
+    (out.parent / "plots").mkdir(parents=True)
+    (out.parent / "plots" / "bench_good_9.png").write_bytes(b"stale")
+    (out.parent / "plots" / "bench_other_1.png").write_bytes(b"kept")
     assert _bench_main().main(["--quick", "--bench-dir", str(bench), "--out", str(out), "--timeout", "8"]) == 0
+    assert not (out.parent / "plots" / "bench_good_9.png").exists()
+    assert (out.parent / "plots" / "bench_other_1.png").read_bytes() == b"kept"
     text = out.read_text()
     assert "# haptex benchmark report" in text and "load average" in text and "numpy" in text
     assert "### Good" in text and "quick=True" in text  # headings demoted under the section
