@@ -410,8 +410,8 @@ def _refined_speeds(plan: NodePlan, scene: Scene, model: TwoColourModel, tables:
 
 
 def _halvings_left(plan: NodePlan, grid: TableGrid, surface: Surface) -> dict[str, int]:
-    """How often each node axis may still be halved (for :func:`axes_to_refine`'s plan), by the
-    limits that :func:`build_checked_tables` applies: explicit nodes none; directions up to
+    """How often each node axis may still be halved: the limits of :func:`axes_to_refine`'s plan
+    and of the refinement in :func:`build_checked_tables` alike. Explicit nodes none; directions up to
     ``MAX_DIRECTIONS`` and speeds up to 64 computed nodes (once more at least while below the
     limits that allow a halving); the grid while its spacing exceeds two pixels and its nodes
     stay within ``MAX_TABLE_NODES``."""
@@ -457,8 +457,12 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
     reference = functools.partial(reference_amplitudes, surface, model, settings)
     for attempt in range(MAX_REFINEMENTS + 1):
         stored = stored_speeds(plan.speeds_mm_s, not plan.explicit_speeds)
-        points = check_points(plan.directions_deg, stored, grid, seed + attempt,
-                              direction_range_deg=scene.direction_range_deg, computed_speed_mm_s=plan.speeds_mm_s)
+
+        def draw_points(draw: int, stored: np.ndarray = stored, grid: TableGrid = grid) -> list[CheckPoint]:
+            return check_points(plan.directions_deg, stored, grid, draw_seed(seed + attempt, draw),
+                                direction_range_deg=scene.direction_range_deg, computed_speed_mm_s=plan.speeds_mm_s)
+
+        points = draw_points(0)
         pending: list = []
 
         def queue_references(points: list[CheckPoint] = points, pending: list = pending) -> None:
@@ -478,8 +482,7 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
         # before the tables are taken (or refined, if the pooled error is above the tolerance).
         draws = 1
         while stats["rms_rel_error"] <= tol < stats["rms_rel_error_upper95"] and draws <= CHECK_EXTRA_DRAWS:
-            more = check_points(plan.directions_deg, stored, grid, draw_seed(seed + attempt, draws),
-                                direction_range_deg=scene.direction_range_deg, computed_speed_mm_s=plan.speeds_mm_s)
+            more = draw_points(draws)
             points, references = points + more, references + list(pool.map(reference, more))
             stats = check_stats(model, settings, tables, points, references, seed=seed + attempt, player=player)
             draws += 1
@@ -495,8 +498,8 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
             break
         refined = False
         n_dir, n_speed, n_nodes = plan.directions_deg.size, tables.speed_mm_s.size, grid.shape[0] * grid.shape[1]
-        chosen = axes_to_refine(stats, tol, room=MAX_TABLE_VALUES / (n_dir * n_speed * n_nodes),
-                                limits=_halvings_left(plan, grid, surface))
+        limits = _halvings_left(plan, grid, surface)  # also what the loop below may still halve
+        chosen = axes_to_refine(stats, tol, room=MAX_TABLE_VALUES / (n_dir * n_speed * n_nodes), limits=limits)
         # When no chosen axis can be refined (node limits, explicit nodes), try the others.
         fallback = [a for a in ("direction", "speed", "position") if a not in chosen]
 
@@ -509,7 +512,7 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
                 break
             if (axis == "direction" and direction_done) or (axis == "speed" and speed_done):
                 continue  # all the halvings asked for are in one adaptive split
-            if axis == "direction" and not plan.explicit_directions and n_dir < MAX_DIRECTIONS // 2 and fits(2):
+            if axis == "direction" and limits["direction"] and fits(2):
                 direction_done = True
                 # never more nodes than uniform halving would give
                 uniform = n_dir * 2 ** max(1, chosen.count("direction"))  # once when only a fallback
@@ -519,15 +522,15 @@ def _build_checked_tables(surface: Surface, model: TwoColourModel, settings: Ana
                     plan.directions_deg = new_dirs
                     n_dir = new_dirs.size
                     refined = True
-            elif axis == "speed" and not plan.explicit_speeds and plan.speeds_mm_s.size < 64 and fits(2):
+            elif axis == "speed" and limits["speed"] and fits(2):
                 speed_done = True  # as for directions: every halving asked for in one split
                 n_computed = plan.speeds_mm_s.size
                 uniform = (n_computed - 1) * 2 ** max(1, chosen.count("speed")) + 1
                 plan.speeds_mm_s = _refined_speeds(plan, scene, model, tables, stats, chosen, max_nodes=uniform)
                 n_speed = n_speed * (plan.speeds_mm_s.size - 1) // max(1, n_computed - 1)
                 refined = True
-            elif (axis == "position" and not plan.explicit_spacing and grid.spacing_mm > 2 * surface.pixel_size_mm
-                  and 4 * n_nodes <= MAX_TABLE_NODES and fits(4)):
+            elif axis == "position" and limits["position"] and fits(4):
+                limits["position"] -= 1  # (it may be asked for twice in a round)
                 grid = halve_grid(grid)  # nested: the fast path has these nodes already
                 plan.spacing_mm = grid.spacing_mm
                 n_nodes = grid.shape[0] * grid.shape[1]

@@ -50,8 +50,6 @@ class OneLineUsageCommand(click.Command):
         try:
             return super().invoke(ctx)
         except click.UsageError as exc:
-            if isinstance(exc, _OneLineUsageError):
-                raise
             raise _OneLineUsageError(exc, ctx.command_path) from None
 
 
