@@ -558,7 +558,8 @@ def shape_from_shading(
         given, slants 15-60°: worst normalised height error of random bumps 0.02 instead of
         0.08, of the sphere cap at 15-45° 0.002 instead of 0.006, the others about the same;
         see ``bench/bench_shading.py``); ``"tsai-shah"``: :func:`tsai_shah`, for
-        comparison. Light straight above (slant < 5°) makes the slopes' signs unobservable:
+        comparison (its heights, like the others', fall back to flat where they ran away:
+        see ``RUNAWAY_SLOPE``). Light straight above (slant < 5°) makes the slopes' signs unobservable:
         the default then starts from a bright-is-high guess (warned, method suffixed).
     periodic : bool
         The image is a tile: the height wraps seamlessly (all operators are periodic).
@@ -629,8 +630,8 @@ def shape_from_shading(
                 "light along the view axis: Tsai-Shah's df/dZ vanishes at the flat start and the"
                 " height stays flat"
             )
-        h = tsai_shah(_finite_or_zero(img), light, pixel_size_um=pixel_size_um)
-        return SfsResult(h, light, 1.0, method, tuple(warnings))
+        z, used_method = _runaway_guarded(tsai_shah(_finite_or_zero(img), light), method, warnings)
+        return SfsResult(z * pixel_size_um, light, 1.0, used_method, tuple(warnings))
 
     used_method = method
     z0 = None
@@ -709,19 +710,26 @@ def shape_from_shading(
                                          weave_basis_px, np.where(known, img, np.nan))
             starts += from_cell or shading_starts._fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
         z, albedo = shading_starts._lowest_energy(dom_img, weight, light, domain_kwargs, starts, weave_basis_px)
-    z = z[:rows, :cols]
-    # The runaway check in the solver's float32 (1 Mpx: 23 -> 7 ms against float64).
+    z, used_method = _runaway_guarded(z[:rows, :cols], used_method, warnings)
+    return SfsResult(z * pixel_size_um, light, float(albedo), used_method, tuple(warnings))
+
+
+RUNAWAY_SLOPE = 50.0  # px per px: a fabric's slopes are below about 1; a runaway inversion's reach 1e3+
+
+
+def _runaway_guarded(z: np.ndarray, method: str, warnings: list[str]) -> tuple[np.ndarray, str]:
+    """Heights `z` (pixel units) as float64 with mean 0, or flat where they ran away
+    (a non-finite value or a slope above ``RUNAWAY_SLOPE``), with a warning appended to
+    `warnings` and the method suffixed ``+flat-fallback``: every method's last guard (Tsai-Shah's
+    faithful iteration diverges on images no surface gives: 214 px per px on a 4 x 4 noise
+    image lit at 1°)."""
+    # The check in the solver's float32 (1 Mpx: 23 -> 7 ms against float64).
     gy, gx = np.gradient(z)
-    runaway = not np.all(np.isfinite(z)) or float(np.max(np.hypot(gx, gy))) > 50.0
-    z = z.astype(np.float64)
-    if runaway:
-        warnings.append(
-            "the solver ran away (non-finite or slopes > 50); fell back to a flat height"
-        )
-        z = np.zeros_like(z)
-        used_method = f"{used_method}+flat-fallback"
-    height = (z - z.mean()) * pixel_size_um
-    return SfsResult(height, light, float(albedo), used_method, tuple(warnings))
+    if np.all(np.isfinite(z)) and float(np.max(np.hypot(gx, gy))) <= RUNAWAY_SLOPE:
+        z = z.astype(np.float64)
+        return z - z.mean(), method
+    warnings.append(f"the solver ran away (non-finite or slopes > {RUNAWAY_SLOPE:g}); fell back to a flat height")
+    return np.zeros(z.shape), f"{method}+flat-fallback"
 
 
 def _solver_settings(method: str, periodic: bool, slant_deg: float, start_given: bool) -> dict:

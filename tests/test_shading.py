@@ -7,6 +7,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from haptex_compile import known_surfaces as ts
 from haptex_compile import shading, shading_image, shading_light, shading_starts
@@ -2252,3 +2254,54 @@ def test_conjugate_gradients_keep_the_priors_waves_as_coefficients():
         dz, dzw, _ = prob.gn_step(z, 0.8, 300, 1e-7, zw=zw)
         assert np.abs(dzw - prob.waves(dz)).max() <= 1e-4 * np.abs(dzw).max()
         assert prob.energy(z + dz, 0.8) <= 1e-6 * e0
+
+
+# ----------------------------------------------------------------------------- hostile images
+
+
+def _hostile_image(kind: int, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """Images no Lambertian surface gives: noise, steps, clipped halves, NaN and inf holes,
+    16-bit integers, (almost) constant planes."""
+    rows, cols = shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(float)
+    if kind == 0:
+        return rng.uniform(0, 1, shape)
+    if kind == 1:
+        return ((x // rng.integers(1, 6) + y // rng.integers(1, 6)) % 2).astype(float)  # checkerboard
+    if kind == 2:
+        return np.where(rng.uniform(size=shape) < 0.5, 0.0, 1.0)  # black and saturated only
+    if kind == 3:
+        img = 0.5 + 0.3 * np.sin(x / 7.0)
+        img[rng.uniform(size=shape) < 0.3] = np.nan
+        img[rng.uniform(size=shape) < 0.05] = np.inf
+        return img
+    if kind == 4:
+        return rng.integers(0, 65536, shape).astype(np.uint16)
+    if kind == 5:
+        img = 0.5 + 0.3 * np.sin(x / 5.0 + y / 9.0)
+        img[:, : cols // 2] = 0.0  # half the image an attached shadow
+        return img
+    if kind == 6:
+        return 0.5 + 1e-6 * rng.standard_normal(shape)  # flat but for rounding
+    img = np.clip(0.9 + 0.1 * rng.standard_normal(shape), 0, None)
+    img[rows // 3: 2 * rows // 3] = 1.0  # a saturated band
+    return img
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(kind=st.integers(0, 7), rows=st.integers(4, 48), cols=st.integers(4, 48), seed=st.integers(0, 2**16),
+       slant=st.floats(0.0, 89.9), tilt=st.floats(-360.0, 720.0), periodic=st.booleans(),
+       method=st.sampled_from(shading.METHODS))
+def test_hostile_images_never_give_non_finite_or_runaway_heights(kind, rows, cols, seed, slant, tilt, periodic,
+                                                                  method):
+    # Issue 7's stability point on images no Lambertian surface gives, light given, every
+    # method: heights of the image's shape, finite, with slopes within the driver's runaway
+    # guard (50 px per px: above it the default solvers fall back to flat), and a finite albedo.
+    img = _hostile_image(kind, (rows, cols), np.random.default_rng(seed))
+    res = shape_from_shading(img, pixel_size_um=PX, light=Light(slant, tilt), periodic=periodic, method=method)
+    assert res.height.shape == (rows, cols)
+    assert np.all(np.isfinite(res.height))
+    gy, gx = np.gradient(res.height / PX)
+    assert float(np.max(np.hypot(gx, gy))) <= 50.0
+    assert np.isfinite(res.albedo) and res.albedo > 0
+    assert all(isinstance(w, str) and "\n" not in w for w in res.warnings)
