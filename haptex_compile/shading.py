@@ -626,9 +626,11 @@ def shape_from_shading(
 
     if method == "tsai-shah":
         if light.slant_deg < MIN_SLANT_DEG:
+            # At slant 0 nothing moves; just above it the paper's gain turns the small df/dZ
+            # into large steps (random bumps lit at 2°: slopes up to 19 px per px).
             warnings.append(
-                "light along the view axis: Tsai-Shah's df/dZ vanishes at the flat start and the"
-                " height stays flat"
+                f"light along the view axis (slant {light.slant_deg:.1f}° < {MIN_SLANT_DEG}°): Tsai-Shah's df/dZ"
+                " vanishes or nearly at the flat start, and the height stays flat or its steps run wild"
             )
         z, used_method = _runaway_guarded(tsai_shah(_finite_or_zero(img), light), method, warnings)
         return SfsResult(z * pixel_size_um, light, 1.0, used_method, tuple(warnings))
