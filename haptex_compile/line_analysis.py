@@ -32,7 +32,7 @@ from scipy import sparse
 
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
-from haptex_compile.line_sampling import LineSampler
+from haptex_compile.line_sampling import LineSampler, fast_len
 from haptex_compile.surface import _bspline_weights, refuse_out_of_scale
 
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
@@ -188,8 +188,8 @@ def direction_powers(
         kk = int(np.ceil(xi_cut * length_mm))
         kj = int(np.ceil(xi_cut * n_rows * px * (abs(frame.sin_d) + frame.cos_d)))
         kj = min(kj, (n_rows - 1) // 2)
-        gj = scipy.fft.next_fast_len(2 * (2 * kj + 1))
-        gk = scipy.fft.next_fast_len(2 * (2 * kk + 1), real=True)
+        gj = fast_len(2 * (2 * kj + 1))
+        gk = fast_len(2 * (2 * kk + 1), real=True)
         # Checked before the kernels are made: they take about a quarter of the grids' values
         # each, and several are alive at once (8 bytes a value: the nodes' sparse read below
         # makes a float64 copy of the grids).

@@ -49,6 +49,17 @@ def periodic_coefficients(surface: Surface) -> np.ndarray:
     return np.concatenate([ext, ext[:, -2:0:-1]], axis=1) if nx > 2 else np.concatenate([ext, ext[:, :0:-1]], axis=1)
 
 
+# Longer than any array the tables' size checks let through: lengths beyond it are returned as
+# they are (next_fast_len raises OverflowError past the C integers, as absurd pixel sizes ask,
+# 1e-20 or 1e20 um, before those checks refuse them in one line).
+FAST_LEN_MAX = 2**40
+
+
+def fast_len(n: int, real: bool = False) -> int:
+    """:func:`scipy.fft.next_fast_len` of `n`, or `n` itself above ``FAST_LEN_MAX``."""
+    return n if n > FAST_LEN_MAX else scipy.fft.next_fast_len(n, real=real)
+
+
 @dataclass(frozen=True)
 class ShearFrame:
     """Geometry of sheared lines for one direction.
@@ -145,7 +156,7 @@ class LineSampler:
         x, y = probe.working_px(nodes_u_mm, nodes_v_mm)
         jf = y - x * probe.tan_d
         margin_x = margin_mm * c / px
-        n_cols = scipy.fft.next_fast_len(int(np.ceil((x.max() - x.min() + 2 * margin_x) / h)) + 2, real=True)
+        n_cols = fast_len(int(np.ceil((x.max() - x.min() + 2 * margin_x) / h)) + 2, real=True)
         x0 = np.floor(0.5 * (x.min() + x.max()) / h - n_cols / 2) * h
         period_rows, _ = self.period(transposed)
         pad_rows = pad_mm / (px * c)

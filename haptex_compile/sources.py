@@ -100,18 +100,23 @@ def parse_brownian_spec(spec: str) -> dict[str, Any]:
         values[key] = value
     if "H" not in values:
         raise InputError(spec, "H is required, e.g. brownian:H=0.7")
-    try:
-        hurst = float(values["H"])
-        size_text = values.get("size", "512").lower()
-        if "x" in size_text:
-            nx, ny = (int(v) for v in size_text.split("x", 1))
-        else:
-            nx = ny = int(size_text)
-        pixel = parse_length_um(values.get("pixel", "20um"))
-        rms = parse_length_um(values.get("rms", "5um"))
-        seed = int(values.get("seed", "0"))
-    except ValueError as exc:
-        raise InputError(spec, str(exc)) from None
+
+    def value(key: str, parse, text: str | None = None, default: str = ""):
+        # each key's own message: Python's ("invalid literal for int() with base 10") named none
+        text = values.get(key, default) if text is None else text
+        try:
+            return parse(text)
+        except ValueError as exc:
+            what = {int: "a whole number", float: "a number"}.get(parse)
+            raise InputError(spec, f"{key}={values.get(key, text)!r} is not {what}" if what else f"{key}: {exc}") from None
+
+    hurst = value("H", float)
+    size_text = values.get("size", "512").lower()
+    sides = size_text.split("x", 1) if "x" in size_text else [size_text] * 2
+    nx, ny = (value("size", int, side) for side in sides)
+    pixel = value("pixel", parse_length_um, default="20um")
+    rms = value("rms", parse_length_um, default="5um")
+    seed = value("seed", int, default="0")
     periodic_text = values.get("periodic", "false").lower()
     if periodic_text not in {"true", "false", "1", "0", "yes", "no"}:
         raise InputError(spec, f"periodic must be true or false, got {periodic_text!r}")

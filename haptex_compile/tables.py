@@ -36,7 +36,7 @@ from haptex_compile.frame_analysis import (
     resolution_weight,
 )
 from haptex_compile.line_analysis import direction_powers, line_margin_mm
-from haptex_compile.line_sampling import LineSampler, supports
+from haptex_compile.line_sampling import LineSampler, fast_len, supports
 from haptex_compile.surface import Surface, sample_height
 
 PREFETCH_HALF_NODES = 20_000  # half-spacing nodes read in advance up to this many (see build_tables)
@@ -59,7 +59,10 @@ class TableGrid:
 
     @property
     def spacing_mm(self) -> float:
-        return float(np.sqrt(abs(np.linalg.det(self.basis_mm))))
+        # inf for absurd pixels (1e308 um), which the tables' size checks then refuse, rather
+        # than numpy's overflow warning on stderr beside the one-line error
+        with np.errstate(over="ignore"):
+            return float(np.sqrt(abs(np.linalg.det(self.basis_mm))))
 
 
 @dataclass(frozen=True)
@@ -133,7 +136,7 @@ def _direction_powers(
     # wrap-around stays out of reach of the window (the same margin as the fast path's lines).
     margin = line_margin_mm(s_max, settings, px)
     a0 = a_nodes.min() - margin
-    n_a = scipy.fft.next_fast_len(int(np.ceil((a_nodes.max() + margin - a0) / px)) + 1, real=True)
+    n_a = fast_len(int(np.ceil((a_nodes.max() + margin - a0) / px)) + 1, real=True)
     b0 = b_nodes.min() - FOOTPRINT_TRUNCATION * sigma - 2 * px
     n_b = int(np.ceil((b_nodes.max() + FOOTPRINT_TRUNCATION * sigma + 2 * px - b0) / px)) + 1
     a = a0 + np.arange(n_a) * px

@@ -160,6 +160,21 @@ def test_a_map_of_implausibly_fine_pixels_is_one_line_and_small(tmp_path):
     assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
 
 
+@pytest.mark.parametrize("pixel", ["1e-20um", "1e20um", "1e308um"])
+def test_absurdly_coarse_pixels_are_one_line_not_an_overflow(tmp_path, pixel):
+    # The tables' lines and footprint grids were sized by scipy's next_fast_len before their
+    # size was checked, and at 1e-20 and 1e20 um it raised OverflowError (a traceback); at
+    # 1e308 um numpy's overflow warning joined the error on stderr.
+    npy = tmp_path / "coarse.npy"
+    np.save(npy, np.random.default_rng(0).normal(size=(36, 38)))
+    out = tmp_path / "coarse.tact.h5"
+    r = run("haptex-compile", str(npy), "-o", str(out), "--pixel-size", pixel)
+    assert r.returncode == 1, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert "coarse.npy" in line and "is out of scale for the tables" in line
+    assert not out.exists()
+
+
 def test_debug_shows_traceback(tmp_path):
     r = run("haptex-compile", str(tmp_path / "missing.png"), "-o", str(tmp_path / "x.tact.h5"), "--debug")
     assert r.returncode != 0 and "Traceback" in r.stderr

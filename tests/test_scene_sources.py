@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import h5py
 import numpy as np
@@ -75,6 +76,12 @@ def test_brownian_spec():
     for bad in ("brownian:size=64", "brownian:H=0.5,colour=red", "brownian:H=0.5,size=4", "brownian:H=x",
                 "brownian:H=0.5,periodic=maybe"):
         with pytest.raises(InputError):
+            parse_brownian_spec(bad)
+    # A value that does not parse is named with its key (Python's own messages named none).
+    for bad, message in (("brownian:H=x", "H='x' is not a number"), ("brownian:H=0.5,seed=1e3", "seed='1e3' is not a whole number"),
+                         ("brownian:H=0.5,size=64xq", "size='64xq' is not a whole number"),
+                         ("brownian:H=0.5,rms=0um", "rms: length '0um' must be finite and positive")):
+        with pytest.raises(InputError, match=re.escape(message)):
             parse_brownian_spec(bad)
 
 
