@@ -28,10 +28,10 @@ def _parse_light(ctx: click.Context, param: click.Parameter, value: str | None):
 def _parse_pixel(ctx: click.Context, param: click.Parameter, value: str | None):
     if value is None:
         return None
-    from haptex_compile.units import parse_length_um
+    from haptex_compile.units import parse_pixel_size_um
 
     try:
-        return parse_length_um(value)
+        return parse_pixel_size_um(value)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
 
@@ -70,7 +70,7 @@ def _one(job: dict) -> tuple[str, str | None]:
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Output asset (one input).")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Folder for the assets of many inputs (NAME.tact.h5).")
 @click.option("--scene", "scene_path", type=click.Path(dir_okay=False), help="Scene TOML (default: HAPTEX 6 x 4 array, 10-200 mm/s, all directions).")
-@click.option("--pixel-size", callback=_parse_pixel, help="Pixel size, e.g. 10um or 0.01mm (default: image metadata, else 20 um with a warning).")
+@click.option("--pixel-size", callback=_parse_pixel, help="Pixel size, e.g. 10um or 0.01mm, at most 1 m (default: image metadata, else 20 um with a warning).")
 @click.option("--relief-um", type=click.FloatRange(min=0, min_open=True), help="Height scale of a photo's relief (see --relief-kind); default 10 um RMS with a warning.")
 @click.option("--relief-kind", type=click.Choice(["rms", "pv"]), default="rms", show_default=True, help="What --relief-um means: RMS or peak-to-valley.")
 @click.option("--sfs", type=click.Choice(["default", "accurate", "tsai-shah"]), default="default", show_default=True,

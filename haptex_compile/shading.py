@@ -633,7 +633,7 @@ def shape_from_shading(
                 " vanishes or nearly at the flat start, and the height stays flat or its steps run wild"
             )
         z, used_method = _runaway_guarded(tsai_shah(_finite_or_zero(img), light), method, warnings)
-        return SfsResult(z * pixel_size_um, light, 1.0, used_method, tuple(warnings))
+        return SfsResult(_in_um(z, pixel_size_um), light, 1.0, used_method, tuple(warnings))
 
     used_method = method
     z0 = None
@@ -713,7 +713,17 @@ def shape_from_shading(
             starts += from_cell or shading_starts._fine_starts(dom_img, weight, light, albedo_start, domain_kwargs)
         z, albedo = shading_starts._lowest_energy(dom_img, weight, light, domain_kwargs, starts, weave_basis_px)
     z, used_method = _runaway_guarded(z[:rows, :cols], used_method, warnings)
-    return SfsResult(z * pixel_size_um, light, float(albedo), used_method, tuple(warnings))
+    return SfsResult(_in_um(z, pixel_size_um), light, float(albedo), used_method, tuple(warnings))
+
+
+def _in_um(z: np.ndarray, pixel_size_um: float) -> np.ndarray:
+    """Heights `z` in pixel units as µm; a ValueError where that overflows (a pixel size near
+    1e308 um), rather than infinite heights."""
+    with np.errstate(over="ignore"):
+        height = z * pixel_size_um
+    if not np.all(np.isfinite(height)):
+        raise ValueError(f"pixel size {pixel_size_um:g} um is too large: the heights in um overflow")
+    return height
 
 
 RUNAWAY_SLOPE = 50.0  # px per px: a fabric's slopes are below about 1; a runaway inversion's reach 1e3+

@@ -18,7 +18,7 @@ import numpy as np
 
 from haptex_compile.errors import InputError
 from haptex_compile.surface import Surface, periodic_surface_from_tile
-from haptex_compile.units import parse_length_um
+from haptex_compile.units import MAX_PIXEL_SIZE_UM, parse_length_um, parse_pixel_size_um
 
 LOG = logging.getLogger("haptex.sources")
 DEFAULT_PIXEL_SIZE_UM = 20.0  # used, with a warning, when neither the user nor metadata give one
@@ -114,7 +114,7 @@ def parse_brownian_spec(spec: str) -> dict[str, Any]:
     size_text = values.get("size", "512").lower()
     sides = size_text.split("x", 1) if "x" in size_text else [size_text] * 2
     nx, ny = (value("size", int, side) for side in sides)
-    pixel = value("pixel", parse_length_um, default="20um")
+    pixel = value("pixel", parse_pixel_size_um, default="20um")
     rms = value("rms", parse_length_um, default="5um")
     seed = value("seed", int, default="0")
     periodic_text = values.get("periodic", "false").lower()
@@ -132,6 +132,8 @@ def _pixel_size(options: SourceOptions, spec: str, metadata_um: float | None = N
     if options.pixel_size_um is not None:
         return options.pixel_size_um, "from --pixel-size"
     if metadata_um is not None:
+        if metadata_um > MAX_PIXEL_SIZE_UM:
+            raise InputError(spec, f"the image's metadata give a pixel of {metadata_um:g} um, above 1 m; give --pixel-size")
         return metadata_um, note or "from image metadata"
     LOG.warning("%s: no pixel size given; using the default %.0f um per pixel (set --pixel-size)", spec, DEFAULT_PIXEL_SIZE_UM)
     return DEFAULT_PIXEL_SIZE_UM, f"default {DEFAULT_PIXEL_SIZE_UM:g} um (no --pixel-size{', ' + note if note else ''})"

@@ -46,3 +46,22 @@ def parse_length_um(text: str | float, default_unit: str = "um") -> float:
     if not math.isfinite(length) or length <= 0:
         raise ValueError(f"length {text!r} must be finite and positive")
     return length
+
+
+# Above this a "pixel" is not a surface texture's, and the heights and lengths it scales run
+# out of float range on the way (1e300 um: float32 tiles overflow; 1e20 um: FFT lengths).
+MAX_PIXEL_SIZE_UM = 1e6  # 1 m
+
+
+def parse_pixel_size_um(text: str | float, default_unit: str = "um") -> float:
+    """:func:`parse_length_um` for a pixel size, which must also be at most ``MAX_PIXEL_SIZE_UM``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`parse_length_um`, or if the length is above 1 m.
+    """
+    length = parse_length_um(text, default_unit)
+    if length > MAX_PIXEL_SIZE_UM:
+        raise ValueError(f"pixel size {text!r} is above 1 m: check its unit")
+    return length

@@ -160,18 +160,21 @@ def test_a_map_of_implausibly_fine_pixels_is_one_line_and_small(tmp_path):
     assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
 
 
-@pytest.mark.parametrize("pixel", ["1e-20um", "1e20um", "1e308um"])
-def test_absurdly_coarse_pixels_are_one_line_not_an_overflow(tmp_path, pixel):
-    # The tables' lines and footprint grids were sized by scipy's next_fast_len before their
-    # size was checked, and at 1e-20 and 1e20 um it raised OverflowError (a traceback); at
-    # 1e308 um numpy's overflow warning joined the error on stderr.
+@pytest.mark.parametrize("pixel, status, fragment", [
+    ("1e-20um", 1, "coarse.npy: the surface (38 x 36 px of 1e-20 um"), ("1e20um", 2, "is above 1 m: check its unit"),
+    ("1e308um", 2, "is above 1 m: check its unit")])
+def test_absurd_pixel_sizes_are_one_line(tmp_path, pixel, status, fragment):
+    # The tables' lines were sized by scipy's next_fast_len before their size was checked, and
+    # at 1e-20 um it raised OverflowError (a traceback), as its footprint grids did at 1e20 um;
+    # at 1e300 um and more numpy's and float32's overflow warnings joined the error on stderr.
+    # Pixels above 1 m are now refused as options; finer ones by the tables' size checks.
     npy = tmp_path / "coarse.npy"
     np.save(npy, np.random.default_rng(0).normal(size=(36, 38)))
     out = tmp_path / "coarse.tact.h5"
     r = run("haptex-compile", str(npy), "-o", str(out), "--pixel-size", pixel)
-    assert r.returncode == 1, r.stderr
+    assert r.returncode == status, r.stderr
     (line,) = r.stderr.strip().splitlines()
-    assert "coarse.npy" in line and "is out of scale for the tables" in line
+    assert fragment in line
     assert not out.exists()
 
 

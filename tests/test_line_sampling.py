@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from haptex_compile.fractal import brownian_surface
-from haptex_compile.line_sampling import LineSampler, supports, working_direction
+from haptex_compile.line_sampling import FAST_LEN_MAX, LineSampler, fast_len, supports, working_direction
 from haptex_compile.surface import Surface, periodic_surface_from_tile, sample_height
 
 
@@ -55,3 +55,14 @@ def test_general_lattices_are_not_supported(height):
     assert not supports(oblique)
     with pytest.raises(ValueError):
         LineSampler(oblique)
+
+
+def test_fast_lengths_do_not_overflow():
+    # scipy's next_fast_len raises OverflowError past the C integers; lengths that long are
+    # returned as they are, for the tables' size checks to refuse in one line.
+    import scipy.fft
+
+    assert fast_len(1000) == scipy.fft.next_fast_len(1000) == 1000 and fast_len(1001, real=True) == 1024
+    assert fast_len(10**20) == 10**20 and fast_len(FAST_LEN_MAX + 1) == FAST_LEN_MAX + 1
+    with pytest.raises(OverflowError):
+        scipy.fft.next_fast_len(10**20)

@@ -12,7 +12,7 @@ from haptex_compile.errors import InputError
 from haptex_compile.io_scene import parse_scene
 from haptex_compile.scene import default_scene, grid_contactors
 from haptex_compile.sources import input_kind, output_stem, parse_brownian_spec, remove_plane
-from haptex_compile.units import parse_length_um
+from haptex_compile.units import parse_length_um, parse_pixel_size_um
 
 
 def test_default_scene_is_the_haptex_array():
@@ -66,6 +66,11 @@ def test_length_units():
     for bad in ("10 furlongs", "-1um", "nan", "0mm", "um"):
         with pytest.raises(ValueError):
             parse_length_um(bad)
+    # A pixel is at most 1 m: above it lengths and heights leave float range on the way.
+    assert parse_pixel_size_um("1m") == 1e6 and parse_pixel_size_um("0.5nm") == 5e-4
+    for bad in ("1.01m", "1e308um", "-1um"):
+        with pytest.raises(ValueError):
+            parse_pixel_size_um(bad)
 
 
 def test_brownian_spec():

@@ -2305,3 +2305,13 @@ def test_hostile_images_never_give_non_finite_or_runaway_heights(kind, rows, col
     assert float(np.max(np.hypot(gx, gy))) <= 50.0
     assert np.isfinite(res.albedo) and res.albedo > 0
     assert all(isinstance(w, str) and "\n" not in w for w in res.warnings)
+
+
+def test_heights_that_overflow_in_um_are_an_error_not_inf():
+    # The heights in µm are the solver's (pixel units) times the pixel size: at 1e308 um that
+    # overflows (this cap rises some 16 px), and infinite heights went on to the tiles and tables.
+    light = Light(45.0, 200.0)
+    img = render_lambertian(ts.sphere_cap((96, 96), PX), PX, light, 0.8, periodic=True)
+    for method in ("default", "tsai-shah"):
+        with pytest.raises(ValueError, match="heights in um overflow"):
+            shape_from_shading(img, pixel_size_um=1e308, light=light, periodic=True, method=method)
