@@ -14,7 +14,7 @@ import jsonschema
 import numpy as np
 
 from haptex_compile.io_scene import load_schema
-from playback.asset import read_asset
+from playback.asset import H5_READ_ERRORS, read_asset
 from playback.errors import AssetError
 
 
@@ -56,8 +56,8 @@ def validate_asset(path: str | Path) -> list[str]:
             return [f"{path}: not an HDF5 file"]
         with h5py.File(path, "r") as f:
             description = describe_h5(f)
-    except OSError as exc:
-        return [f"{path}: cannot open ({' '.join(str(exc).split())})"]
+    except H5_READ_ERRORS as exc:  # corrupt files: h5py's errors as one line, as the reader does
+        return [f"{path}: cannot read ({' '.join(str(exc).split()) or type(exc).__name__})"]
     problems = []
     validator = jsonschema.Draft202012Validator(load_schema("asset.schema.json"))
     for err in sorted(validator.iter_errors(description), key=lambda e: list(e.absolute_path)):

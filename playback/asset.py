@@ -22,6 +22,9 @@ from playback.errors import AssetError
 
 FORMAT_NAME = "haptex-tactile-asset"
 SUPPORTED_MAJOR = 1
+# What h5py raises on truncated or corrupt files (a damaged B-tree, local heap or string type),
+# which the reader and the compiler's validator turn into one line.
+H5_READ_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError)
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,7 +239,7 @@ def read_asset(path: str | Path, *, load_surface: bool = False) -> Asset:
             return _read_open(path, f, load_surface)
     except AssetError:
         raise
-    except (OSError, KeyError, RuntimeError, TypeError, ValueError) as exc:
+    except H5_READ_ERRORS as exc:
         # Truncated or corrupt files surface here from h5py: keep it to one line.
         message = " ".join(str(exc).split()) or type(exc).__name__
         raise AssetError(path, f"cannot read asset ({message})") from None

@@ -114,6 +114,31 @@ def test_compile_writes_a_valid_asset(asset):
     assert float(np.std(a.height_um)) == pytest.approx(5.0, rel=1e-3)
 
 
+def test_corrupt_assets_are_invalid_in_one_line_each(tmp_path):
+    # Random bytes overwritten in an asset: h5py raises TypeError or RuntimeError on some
+    # (a damaged string type, B-tree or local heap), which the validator let through as a
+    # traceback (seeds 5, 16 and 35 of these; the reader already caught them).
+    import random
+
+    from asset_factory import write_test_asset
+
+    from haptex_compile.asset_validate import validate_asset
+
+    data = write_test_asset(tmp_path / "good.tact.h5").read_bytes()
+    unreadable = 0
+    for seed in range(40):
+        rng = random.Random(seed)
+        corrupt = bytearray(data)
+        for _ in range(rng.randint(1, 40)):
+            corrupt[rng.randrange(len(corrupt))] = rng.randrange(256)
+        path = tmp_path / f"corrupt{seed}.tact.h5"
+        path.write_bytes(corrupt)
+        problems = validate_asset(path)
+        assert all(p.startswith(str(path)) and "\n" not in p for p in problems)
+        unreadable += any("cannot read (" in p for p in problems)
+    assert unreadable >= 3
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))
