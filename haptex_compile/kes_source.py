@@ -1,11 +1,24 @@
 """Kawabata (KES-F) files as compiler inputs: a synthetic fabric whose simulated SMD matches."""
 from __future__ import annotations
 
+import math
+
 from haptex_compile.errors import InputError
 from haptex_compile.sources import SourceOptions, SourceResult
 from haptex_compile.surface import periodic_surface_from_tile
 
 DEFAULT_KES_PIXEL_UM = 20.0  # fine enough for the 0.5 mm probe and for threads of 0.1 mm or more
+
+
+def kes_pixel_um(ends_per_cm: float, picks_per_cm: float, cap_um: float = DEFAULT_KES_PIXEL_UM) -> float:
+    """The default pixel size (µm) for a KES fabric: `cap_um` (``DEFAULT_KES_PIXEL_UM``), or
+    finer where the threads are closer than 4 of those pixels (the synthesis needs
+    ``kes._MIN_PITCH_PX`` per thread: a silk of 150 ends/cm was refused at 20 um), rounded down
+    to 0.01 um."""
+    from haptex_compile.kes import _MIN_PITCH_PX
+
+    spacing_um = 1e4 / max(ends_per_cm, picks_per_cm)
+    return min(cap_um, math.floor(100.0 * spacing_um / _MIN_PITCH_PX) / 100.0)
 
 
 def kes_source(spec: str, options: SourceOptions) -> SourceResult:
@@ -18,12 +31,18 @@ def kes_source(spec: str, options: SourceOptions) -> SourceResult:
         if len(kes) != 1:
             raise InputError(spec, f"holds {len(kes)} fabrics; compile them one by one (split the CSV) ")
         kes = kes[0]
-    px = options.pixel_size_um or DEFAULT_KES_PIXEL_UM
+    px = options.pixel_size_um or kes_pixel_um(kes.ends_per_cm, kes.picks_per_cm)
+    finest = kes_pixel_um(kes.ends_per_cm, kes.picks_per_cm, cap_um=math.inf)
+    if px > finest:  # the synthesis's own message names its keyword, not the option
+        raise InputError(spec, f"--pixel-size {px:g} um is too coarse for threads {1e4 / max(kes.ends_per_cm, kes.picks_per_cm):.3g} um"
+                               f" apart (at least 4 px per thread: give {finest:g} um or less, or leave it out)")
     result = kes_surface(kes, pixel_size_um=px, seed=options.seed)
     surface = periodic_surface_from_tile(result.height_um.astype(float), result.pixel_size_um)
+    note = "from --pixel-size" if options.pixel_size_um else (
+        "KES default" if px == DEFAULT_KES_PIXEL_UM else "KES default, finer for 4 px per thread")
     report = {
         "fabric": kes.fabric,
-        "pixel_size": f"{px:g} um ({'from --pixel-size' if options.pixel_size_um else 'KES default'})",
+        "pixel_size": f"{px:g} um ({note})",
         "smd_given_um": dict(kes.smd_um),
         "smd_simulated_um": dict(result.smd_simulated_um),
     }

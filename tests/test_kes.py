@@ -387,3 +387,26 @@ def test_relief_scale_on_a_photo_like_map():
     assert measured == pytest.approx(math.sqrt(2.5 * 4.0), rel=0.01)
     with pytest.raises(ValueError, match="flat"):
         kes_relief_scale(data, np.ones((100, 100)), 10.0)
+
+
+# --------------------------------------------------------------------------------------------
+# the compiler's source
+
+
+def test_a_fine_fabric_gets_pixels_fine_enough_for_its_threads(tmp_path):
+    # 20 um pixels fit threads 80 um apart or more (4 px each); a silk of 150 ends/cm (threads
+    # 66.7 um apart) was refused at that default and named the library's keyword, not the option.
+    from haptex_compile.kes_source import DEFAULT_KES_PIXEL_UM, kes_pixel_um, kes_source
+    from haptex_compile.sources import SourceOptions
+
+    assert kes_pixel_um(48, 30) == DEFAULT_KES_PIXEL_UM and kes_pixel_um(125, 30) == DEFAULT_KES_PIXEL_UM
+    assert kes_pixel_um(150, 120) == 16.66 and kes_pixel_um(300, 400) == 6.25
+    path = tmp_path / "silk.kes.json"
+    path.write_text(json.dumps({**GOOD, "fabric": "silk habotai", "ends_per_cm": 150, "picks_per_cm": 120}))
+    result = kes_source(str(path), SourceOptions())
+    assert result.surface.pixel_size_um == 16.66 and "finer for 4 px per thread" in result.report["pixel_size"]
+    for direction in ("warp", "weft"):
+        assert result.report["smd_simulated_um"][direction] == pytest.approx(GOOD["smd_um"][direction], rel=0.05)
+    with pytest.raises(InputError, match=r"silk\.kes\.json: --pixel-size 20 um is too coarse for threads 66\.7 um apart"
+                                         r" \(at least 4 px per thread: give 16\.66 um or less"):
+        kes_source(str(path), SourceOptions(pixel_size_um=20.0))
