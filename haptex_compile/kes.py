@@ -177,14 +177,29 @@ def _grid(ends_per_cm: float, picks_per_cm: float, weave: str, pixel_size_um: fl
         raise ValueError(f"pixel_size_um={pixel_size_um:g} is too coarse for a thread spacing of "
                          f"{coarse:.1f} um (need >= {_MIN_PITCH_PX:g} px per thread; use "
                          f"pixel_size_um <= {coarse / _MIN_PITCH_PX:.3g})")
-    n_ends = ends_rep * math.ceil(min_extent_mm * 1e3 / (ends_rep * pitch_u_um) - 1e-9)
-    n_picks = picks_rep * math.ceil(min_extent_mm * 1e3 / (picks_rep * pitch_v_um) - 1e-9)
-    nx = int(round(n_ends * pitch_u_um / pixel_size_um))
-    ny = int(round(n_picks * pitch_v_um / pixel_size_um))
+    n_ends, n_picks, nx, ny = _extent(matrix.shape, pitch_u_um, pitch_v_um, pixel_size_um, min_extent_mm)
     if max(nx, ny) > _MAX_SIDE_PX:
         raise ValueError(f"surface of {nx} x {ny} px exceeds {_MAX_SIDE_PX} px per side; "
                          f"use a larger pixel_size_um than {pixel_size_um:g}")
     return matrix, n_ends, n_picks, nx, ny
+
+
+def _extent(repeat: tuple[int, int], pitch_u_um: float, pitch_v_um: float, pixel_size_um: float,
+            min_extent_mm: float) -> tuple[int, int, int, int]:
+    """Ends, picks and pixels (nx, ny) of the synthesised surface: whole weave repeats
+    (`repeat` = picks, ends per repeat) covering at least `min_extent_mm` each way."""
+    picks_rep, ends_rep = repeat
+    n_ends = ends_rep * math.ceil(min_extent_mm * 1e3 / (ends_rep * pitch_u_um) - 1e-9)
+    n_picks = picks_rep * math.ceil(min_extent_mm * 1e3 / (picks_rep * pitch_v_um) - 1e-9)
+    return n_ends, n_picks, int(round(n_ends * pitch_u_um / pixel_size_um)), int(round(n_picks * pitch_v_um / pixel_size_um))
+
+
+def synthesis_side_px(ends_per_cm: float, picks_per_cm: float, weave: str, pixel_size_um: float,
+                      min_extent_mm: float = 10.0) -> tuple[int, int]:
+    """The pixels (nx, ny) of the surface :func:`kes_surface` would synthesise (at most
+    ``_MAX_SIDE_PX`` a side are allowed)."""
+    _, _, nx, ny = _extent(weave_matrix(weave).shape, 1e4 / ends_per_cm, 1e4 / picks_per_cm, pixel_size_um, min_extent_mm)
+    return nx, ny
 
 
 def _thread_coords(n_px: int, n_threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,7 +23,8 @@ def kes_pixel_um(ends_per_cm: float, picks_per_cm: float, cap_um: float = DEFAUL
 
 def kes_source(spec: str, options: SourceOptions) -> SourceResult:
     """Read one fabric from a ``.kes.json`` (or a one-row ``.kes.csv``) and synthesise it."""
-    from haptex_compile.kes import kes_surface
+    from haptex_compile.kes import _MAX_SIDE_PX as MAX_SIDE_PX
+    from haptex_compile.kes import kes_surface, synthesis_side_px
     from haptex_compile.kes_io import read_kes
 
     kes = read_kes(spec)
@@ -36,6 +37,12 @@ def kes_source(spec: str, options: SourceOptions) -> SourceResult:
     if px > finest:  # the synthesis's own message names its keyword, not the option
         raise InputError(spec, f"--pixel-size {px:g} um is too coarse for threads {1e4 / max(kes.ends_per_cm, kes.picks_per_cm):.3g} um"
                                f" apart (at least 4 px per thread: give {finest:g} um or less, or leave it out)")
+    nx, ny = synthesis_side_px(kes.ends_per_cm, kes.picks_per_cm, kes.weave, px)
+    if max(nx, ny) > MAX_SIDE_PX:  # threads fine one way, a weave repeat long the other
+        fits = max(synthesis_side_px(kes.ends_per_cm, kes.picks_per_cm, kes.weave, finest)) <= MAX_SIDE_PX
+        raise InputError(spec, f"at {px:g} um pixels its weave repeat takes {nx} x {ny} px, above {MAX_SIDE_PX} a side: "
+                               + (f"give a coarser --pixel-size (up to {finest:g} um fits its threads)" if fits else
+                                  "no pixel size fits both that and its threads (4 px each): check its thread counts"))
     result = kes_surface(kes, pixel_size_um=px, seed=options.seed)
     surface = periodic_surface_from_tile(result.height_um.astype(float), result.pixel_size_um)
     note = "from --pixel-size" if options.pixel_size_um else (

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import jsonschema
@@ -410,3 +411,22 @@ def test_a_fine_fabric_gets_pixels_fine_enough_for_its_threads(tmp_path):
     with pytest.raises(InputError, match=r"silk\.kes\.json: --pixel-size 20 um is too coarse for threads 66\.7 um apart"
                                          r" \(at least 4 px per thread: give 16\.66 um or less"):
         kes_source(str(path), SourceOptions(pixel_size_um=20.0))
+
+
+def test_a_weave_repeat_too_long_for_its_pixels_is_one_clear_line(tmp_path):
+    # 400 ends and 1 pick per cm in a 4-pick twill: the threads need 6.25 um pixels, and the
+    # 40 mm repeat then takes 6400 px, above the synthesis's 4096; the library's message
+    # advised "a larger pixel_size_um", which the threads do not allow.
+    from haptex_compile.kes import synthesis_side_px
+    from haptex_compile.kes_source import kes_source
+    from haptex_compile.sources import SourceOptions
+
+    assert synthesis_side_px(400, 1, "twill_3_1", 6.25) == (1600, 6400)
+    assert synthesis_side_px(48, 30, "plain", 20.0) == (500, 500)  # 10 mm of whole repeats each way
+    path = tmp_path / "odd.kes.json"
+    for ends, pixel, words in ((400, None, "no pixel size fits both that and its threads"),
+                               (100, 5.0, "give a coarser --pixel-size (up to 25 um fits its threads)")):
+        path.write_text(json.dumps({**GOOD, "ends_per_cm": ends, "picks_per_cm": 1, "weave": "twill_3_1"}))
+        with pytest.raises(InputError, match=re.escape(words)) as info:
+            kes_source(str(path), SourceOptions(pixel_size_um=pixel))
+        assert str(info.value).startswith(f"{path}: at ") and "above 4096 a side" in str(info.value)
