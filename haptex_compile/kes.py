@@ -191,7 +191,8 @@ def _extent(repeat: tuple[int, int], pitch_u_um: float, pitch_v_um: float, pixel
     picks_rep, ends_rep = repeat
     n_ends = ends_rep * math.ceil(min_extent_mm * 1e3 / (ends_rep * pitch_u_um) - 1e-9)
     n_picks = picks_rep * math.ceil(min_extent_mm * 1e3 / (picks_rep * pitch_v_um) - 1e-9)
-    return n_ends, n_picks, int(round(n_ends * pitch_u_um / pixel_size_um)), int(round(n_picks * pitch_v_um / pixel_size_um))
+    nx, ny = int(round(n_ends * pitch_u_um / pixel_size_um)), int(round(n_picks * pitch_v_um / pixel_size_um))
+    return n_ends, n_picks, nx, ny
 
 
 def synthesis_side_px(ends_per_cm: float, picks_per_cm: float, weave: str, pixel_size_um: float,

@@ -33,16 +33,17 @@ def kes_source(spec: str, options: SourceOptions) -> SourceResult:
             raise InputError(spec, f"holds {len(kes)} fabrics; compile them one by one (split the CSV) ")
         kes = kes[0]
     px = options.pixel_size_um or kes_pixel_um(kes.ends_per_cm, kes.picks_per_cm)
-    finest = kes_pixel_um(kes.ends_per_cm, kes.picks_per_cm, cap_um=math.inf)
-    if px > finest:  # the synthesis's own message names its keyword, not the option
-        raise InputError(spec, f"--pixel-size {px:g} um is too coarse for threads {1e4 / max(kes.ends_per_cm, kes.picks_per_cm):.3g} um"
-                               f" apart (at least 4 px per thread: give {finest:g} um or less, or leave it out)")
+    coarsest = kes_pixel_um(kes.ends_per_cm, kes.picks_per_cm, cap_um=math.inf)
+    spacing_um = 1e4 / max(kes.ends_per_cm, kes.picks_per_cm)
+    if px > coarsest:  # the synthesis's own message names its keyword, not the option
+        raise InputError(spec, f"--pixel-size {px:g} um is too coarse for threads {spacing_um:.3g} um apart"
+                               f" (at least 4 px per thread: give {coarsest:g} um or less, or leave it out)")
     nx, ny = synthesis_side_px(kes.ends_per_cm, kes.picks_per_cm, kes.weave, px)
     if max(nx, ny) > MAX_SIDE_PX:  # threads fine one way, a weave repeat long the other
-        fits = max(synthesis_side_px(kes.ends_per_cm, kes.picks_per_cm, kes.weave, finest)) <= MAX_SIDE_PX
-        raise InputError(spec, f"at {px:g} um pixels its weave repeat takes {nx} x {ny} px, above {MAX_SIDE_PX} a side: "
-                               + (f"give a coarser --pixel-size (up to {finest:g} um fits its threads)" if fits else
-                                  "no pixel size fits both that and its threads (4 px each): check its thread counts"))
+        fits = max(synthesis_side_px(kes.ends_per_cm, kes.picks_per_cm, kes.weave, coarsest)) <= MAX_SIDE_PX
+        advice = (f"give a coarser --pixel-size (up to {coarsest:g} um fits its threads)" if fits else
+                  "no pixel size fits both that and its threads (4 px each): check its thread counts")
+        raise InputError(spec, f"at {px:g} um pixels its weave repeat takes {nx} x {ny} px, above {MAX_SIDE_PX} a side: {advice}")
     result = kes_surface(kes, pixel_size_um=px, seed=options.seed)
     surface = periodic_surface_from_tile(result.height_um.astype(float), result.pixel_size_um)
     note = "from --pixel-size" if options.pixel_size_um else (

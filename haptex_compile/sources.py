@@ -108,7 +108,8 @@ def parse_brownian_spec(spec: str) -> dict[str, Any]:
             return parse(text)
         except ValueError as exc:
             what = {int: "a whole number", float: "a number"}.get(parse)
-            raise InputError(spec, f"{key}={values.get(key, text)!r} is not {what}" if what else f"{key}: {exc}") from None
+            message = f"{key}={values.get(key, text)!r} is not {what}" if what else f"{key}: {exc}"
+            raise InputError(spec, message) from None
 
     hurst = value("H", float)
     size_text = values.get("size", "512").lower()
@@ -133,7 +134,8 @@ def _pixel_size(options: SourceOptions, spec: str, metadata_um: float | None = N
         return options.pixel_size_um, "from --pixel-size"
     if metadata_um is not None:
         if metadata_um > MAX_PIXEL_SIZE_UM:
-            raise InputError(spec, f"the image's metadata give a pixel of {metadata_um:g} um, above 1 m; give --pixel-size")
+            raise InputError(spec, f"the image's metadata give a pixel of {metadata_um:g} um, above 1 m;"
+                                   " give --pixel-size")
         return metadata_um, note or "from image metadata"
     LOG.warning("%s: no pixel size given; using the default %.0f um per pixel (set --pixel-size)", spec, DEFAULT_PIXEL_SIZE_UM)
     return DEFAULT_PIXEL_SIZE_UM, f"default {DEFAULT_PIXEL_SIZE_UM:g} um (no --pixel-size{', ' + note if note else ''})"
