@@ -194,7 +194,9 @@ def direction_powers(
         # each, and several are alive at once (8 bytes a value: the nodes' sparse read below
         # makes a float64 copy of the grids).
         _check_size(8 * len(group) * 2 * gj * gk, sampler, f"its footprint grids ({len(group)} x 2 x {gj} x {gk})",
-                    "crop it or check its pixel size")
+                    "crop it or check its pixel size; they grow with the fastest speed and as 1 / the footprint's"
+                    f" width squared: a wider footprint (the scene's render.footprint_sigma_mm, {sigma:g} mm; 0 is"
+                    " the point model) or slower speeds shrink them")
         mj = np.concatenate([np.arange(kj + 1), np.arange(-kj, 0)])
         xi_a = np.arange(kk + 1) / length_mm
         xi_b = (mj[:, None] / n_rows - xi_a[None, :] * px * frame.sin_d) / (px * frame.cos_d)

@@ -203,6 +203,33 @@ def test_absurd_pixel_sizes_are_one_line(tmp_path, pixel, status, fragment):
     assert not out.exists()
 
 
+def test_a_scene_with_a_pinpoint_footprint_at_high_speed_is_one_line_and_small(tmp_path):
+    # A footprint of 0.1 um (schema-valid: 0 to 5 mm) at 2000 mm/s: the reference renderer's
+    # frame window was tabulated at 1/200 of the footprint's passage (50 ns), 2e8 samples, and
+    # the compile was killed at 24 GB before the tables refused their grids. Under a 4 GiB
+    # address-space limit, as test_a_map_of_implausibly_fine_pixels_is_one_line_and_small.
+    import os
+    import resource
+
+    scene = tmp_path / "pin.toml"
+    scene.write_text("[motion]\nspeed_range_mm_s = [1999, 2000]\ndirections_deg = [0, 0.001]\ntolerance = 0.5\n"
+                     "[render]\nfootprint_sigma_mm = 0.0001\n")
+    out, err = tmp_path / "pin.tact.h5", tmp_path / "stderr.txt"
+    limit = 4 * 2 ** 30
+    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
+    with open(err, "w") as stderr:
+        child = subprocess.Popen([sys.executable, "-c", code, SPEC, "-o", str(out), "--scene", str(scene), "-q"],
+                                 stdout=subprocess.DEVNULL, stderr=stderr,
+                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)
+    assert child.returncode == 1, err.read_text()
+    (line,) = err.read_text().strip().splitlines()
+    assert "is out of scale for the tables: its footprint grids" in line and "render.footprint_sigma_mm, 0.0001 mm" in line
+    assert not out.exists()
+    assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
+
+
 def test_debug_shows_traceback(tmp_path):
     r = run("haptex-compile", str(tmp_path / "missing.png"), "-o", str(tmp_path / "x.tact.h5"), "--debug")
     assert r.returncode != 0 and "Traceback" in r.stderr

@@ -459,3 +459,23 @@ def test_intensities_invert_the_decomposition_inside_the_gamut():
     ip, inp = model.intensities(2.0, 0.0)
     wp, wnp = model.weights(40.0)
     assert ip == pytest.approx(2.0 * wp) and inp == pytest.approx(2.0 * wnp)
+
+
+def test_a_footprint_passage_far_shorter_than_the_frame_is_a_point_in_the_window():
+    # The window is tabulated at 1/200 of the shorter of the frame and the footprint's passage;
+    # a passage of 50 ns (0.1 um at 2000 mm/s) asked for 2e8 samples. Below 1/800 of the frame
+    # it is a point: the table is the bare Hann's, and the Gaussian would change the window by
+    # about (sigma / T)^2 pi^2 / 4 (3.9e-6 at the limit, as measured below).
+    from haptex_compile.frame_analysis import POINT_PASSAGE_FRACTION, _window_table, frame_window
+
+    frame_ms = 25.0
+    t_point, w_point = _window_table(frame_ms, 5e-8)
+    t_bare, w_bare = _window_table(frame_ms, 0.0)
+    assert t_point.size == t_bare.size == 401 and np.array_equal(w_point, w_bare)
+    # just above the limit the Gaussian is applied, on the longest table there is (3.2e5 samples)
+    sigma = 1.01 * POINT_PASSAGE_FRACTION * frame_ms / 1000.0
+    t, w = _window_table(frame_ms, sigma)
+    assert t.size < 2 * 800 * 200 + 1
+    offsets = np.linspace(-0.02, 0.02, 81)
+    change = np.abs(frame_window(offsets, frame_ms, sigma) - frame_window(offsets, frame_ms, 0.0)).max()
+    assert change < 1e-5
