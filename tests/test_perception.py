@@ -479,3 +479,29 @@ def test_a_footprint_passage_far_shorter_than_the_frame_is_a_point_in_the_window
     offsets = np.linspace(-0.02, 0.02, 81)
     change = np.abs(frame_window(offsets, frame_ms, sigma) - frame_window(offsets, frame_ms, 0.0)).max()
     assert change < 1e-5
+
+
+@pytest.mark.parametrize("ratio", [801.0, 1500.0])
+def test_a_footprint_passage_far_longer_than_the_frame_makes_the_window_its_gaussian(ratio):
+    # A 0.25 mm footprint at 0.001 mm/s passes in 250 s, 1e4 x a 25 ms frame: the window was
+    # tabulated at 1/200 of the frame over the passage (2e7 samples) and convolved directly
+    # (hours; a 64 px map's compile ran past 5 minutes). Beyond 800 x the frame it is the
+    # footprint's Gaussian times the Hann's area T, normalised over its truncated support as
+    # the convolution's was; here against that convolution done by FFT.
+    from scipy.signal import fftconvolve
+
+    from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, _window_table, frame_window
+
+    frame_ms, t_frame = 25.0, 0.025
+    sigma = ratio * t_frame
+    step = t_frame / 200
+    n = int(np.ceil((t_frame + FOOTPRINT_TRUNCATION * sigma) / step))
+    t = np.arange(-n, n + 1) * step
+    hann = np.where(np.abs(t) < t_frame, np.cos(np.pi * t / (2 * t_frame)) ** 2, 0.0)
+    m = int(np.ceil(FOOTPRINT_TRUNCATION * sigma / step))
+    g = np.exp(-0.5 * (np.arange(-m, m + 1) * step / sigma) ** 2)
+    convolved = fftconvolve(hann, g / g.sum(), mode="same")
+    offsets = np.linspace(-3.9 * sigma, 3.9 * sigma, 301)
+    window = frame_window(offsets, frame_ms, sigma)
+    assert np.abs(window - np.interp(offsets, t, convolved)).max() < 1e-5 * convolved.max()
+    assert _window_table(frame_ms, sigma)[0].size < 2000
