@@ -21,10 +21,9 @@ along whole lines. Both sample heights through :func:`haptex_compile.surface.sam
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
-
-import math
 
 import numpy as np
 
