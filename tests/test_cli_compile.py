@@ -23,6 +23,22 @@ def run(tool: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedP
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
+def run_compile_limited(tmp_path: Path, *args: str, limit: int = 4 * 2 ** 30) -> tuple[int, str, int]:
+    """haptex-compile `args` in a child under an address-space `limit` (a regression then fails
+    here, its threads filling the limit, rather than taking the machine): (exit status, its
+    stderr, the child's own peak RSS in KiB)."""
+    import os
+    import resource
+
+    err = tmp_path / "stderr.txt"
+    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
+    with open(err, "w") as stderr:
+        child = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.DEVNULL, stderr=stderr,
+                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
+        _, status, usage = os.wait4(child.pid, 0)
+    return os.waitstatus_to_exitcode(status), err.read_text(), usage.ru_maxrss
+
+
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory) -> Path:
     p = tmp_path_factory.mktemp("scene") / "small.toml"
@@ -164,25 +180,15 @@ def test_a_map_of_implausibly_fine_pixels_is_one_line_and_small(tmp_path):
     # frames queued beside them are refused too, or cancelled, instead of sampling strokes of
     # 6e7 pixels (killed at 24 GB). Run under a 4 GiB address-space limit, so that a
     # regression fails here (its threads fill the limit) rather than taking the machine.
-    import os
-    import resource
-
     npy = tmp_path / "fine.npy"
     np.save(npy, np.random.default_rng(0).normal(size=(16, 16)))
-    out, err = tmp_path / "fine.tact.h5", tmp_path / "stderr.txt"
-    limit = 4 * 2 ** 30
-    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
-    with open(err, "w") as stderr:
-        child = subprocess.Popen([sys.executable, "-c", code, str(npy), "-o", str(out), "--pixel-size", "0.001um", "-q"],
-                                 stdout=subprocess.DEVNULL, stderr=stderr,
-                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
-        _, status, usage = os.wait4(child.pid, 0)  # the child's own peak memory
-        child.returncode = os.waitstatus_to_exitcode(status)
-    assert child.returncode == 1, err.read_text()
-    (line,) = err.read_text().strip().splitlines()
+    out = tmp_path / "fine.tact.h5"
+    status, stderr, peak_kib = run_compile_limited(tmp_path, str(npy), "-o", str(out), "--pixel-size", "0.001um", "-q")
+    assert status == 1, stderr
+    (line,) = stderr.strip().splitlines()
     assert "fine.npy: the surface (16 x 16 px of 0.001 um" in line and "is out of scale" in line
     assert not out.exists()
-    assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
+    assert peak_kib < 2 ** 20  # under 1 GiB
 
 
 @pytest.mark.parametrize("pixel, status, fragment", [
@@ -207,27 +213,17 @@ def test_a_scene_with_a_pinpoint_footprint_at_high_speed_is_one_line_and_small(t
     # A footprint of 0.1 um (schema-valid: 0 to 5 mm) at 2000 mm/s: the reference renderer's
     # frame window was tabulated at 1/200 of the footprint's passage (50 ns), 2e8 samples, and
     # the compile was killed at 24 GB before the tables refused their grids. Under a 4 GiB
-    # address-space limit, as test_a_map_of_implausibly_fine_pixels_is_one_line_and_small.
-    import os
-    import resource
-
+    # address-space limit (run_compile_limited).
     scene = tmp_path / "pin.toml"
     scene.write_text("[motion]\nspeed_range_mm_s = [1999, 2000]\ndirections_deg = [0, 0.001]\ntolerance = 0.5\n"
                      "[render]\nfootprint_sigma_mm = 0.0001\n")
-    out, err = tmp_path / "pin.tact.h5", tmp_path / "stderr.txt"
-    limit = 4 * 2 ** 30
-    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
-    with open(err, "w") as stderr:
-        child = subprocess.Popen([sys.executable, "-c", code, SPEC, "-o", str(out), "--scene", str(scene), "-q"],
-                                 stdout=subprocess.DEVNULL, stderr=stderr,
-                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
-        _, status, usage = os.wait4(child.pid, 0)
-        child.returncode = os.waitstatus_to_exitcode(status)
-    assert child.returncode == 1, err.read_text()
-    (line,) = err.read_text().strip().splitlines()
+    out = tmp_path / "pin.tact.h5"
+    status, stderr, peak_kib = run_compile_limited(tmp_path, SPEC, "-o", str(out), "--scene", str(scene), "-q")
+    assert status == 1, stderr
+    (line,) = stderr.strip().splitlines()
     assert "is out of scale for the tables: its footprint grids" in line and "render.footprint_sigma_mm, 0.0001 mm" in line
     assert not out.exists()
-    assert usage.ru_maxrss < 2 ** 20  # KiB: under 1 GiB
+    assert peak_kib < 2 ** 20  # under 1 GiB
 
 
 def test_debug_shows_traceback(tmp_path):
