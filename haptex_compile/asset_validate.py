@@ -14,7 +14,7 @@ import jsonschema
 import numpy as np
 
 from haptex_compile.io_scene import load_schema
-from playback.asset import H5_READ_ERRORS, read_asset
+from playback.asset import H5_READ_ERRORS, read_asset, refuse_crashing
 from playback.errors import AssetError
 
 
@@ -54,8 +54,11 @@ def validate_asset(path: str | Path) -> list[str]:
     try:
         if not h5py.is_hdf5(str(path)):
             return [f"{path}: not an HDF5 file"]
+        refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
         with h5py.File(path, "r") as f:
             description = describe_h5(f)
+    except AssetError as exc:  # a file that crashes libhdf5
+        return [str(exc)]
     except H5_READ_ERRORS as exc:  # corrupt files: h5py's errors as one line, as the reader does
         return [f"{path}: cannot read ({' '.join(str(exc).split()) or type(exc).__name__})"]
     problems = []

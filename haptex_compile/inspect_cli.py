@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from playback.cli_common import EXIT_BAD_INPUT, command, common_options
+from playback.errors import InputError
 
 
 def _upper(tables) -> str:
@@ -97,11 +98,13 @@ def is_playback_record(path: str) -> bool:
     """True for an HDF5 file written by ``haptex-play --record``."""
     import h5py
 
+    from playback.asset import H5_READ_ERRORS
+
     try:
         with h5py.File(path, "r") as f:
             return f.attrs.get("format") == "haptex-playback-record"
-    except OSError:
-        return False  # not HDF5: the asset reader gives the one-line error
+    except H5_READ_ERRORS:
+        return False  # not HDF5, or corrupt: the asset reader gives the one-line error
 
 
 def record_summary(path: str) -> str:
@@ -111,8 +114,16 @@ def record_summary(path: str) -> str:
     record version); the run's own summary attributes fill in what the datasets cannot tell.
     Send error = time the transport accepted the packet minus its due time (window start minus
     the lead); drift = median send error over the last tenth of the frames minus the first tenth
-    (the player's definitions, docs/usb-protocol.md).
+    (the player's definitions, docs/usb-protocol.md). A corrupt or malformed record is one
+    :class:`~playback.errors.InputError` line.
     """
+    from playback.asset import corrupt_file_errors
+
+    with corrupt_file_errors(path, "playback record"):
+        return _record_summary(path)
+
+
+def _record_summary(path: str) -> str:
     import h5py
 
     from playback.interp import FLAG_NAMES
@@ -153,6 +164,13 @@ def record_summary(path: str) -> str:
         stopped_by, zero_sent = attr(f, "stopped_by", "?"), attr(f, "zero_frame_sent")
         asset, version = attr(f, "asset", "?"), attr(f, "format_version", "?")
         err_max = attr(f, "tables_max_rel_error")
+        shapes = {name: fr[name].shape for name in ("index", "late", "deadline_s", "sent_s", "render_us",
+                                                    "latency_us", "clamped", "nonfinite", "flags", "a40", "a320",
+                                                    "codes")}
+    for name, shape in shapes.items():
+        if shape[:1] != (n,):
+            raise InputError(path, f"malformed playback record (/frames/{name} has shape {shape},"
+                                   f" /frames/t_s has {n} frames)")
     if skipped is None:  # older records: gaps in the frame numbers are the skipped frames
         skipped = int(index[-1] + 1 - n) if n else 0
     head = f"{path}: haptex-play record {version} (mode {mode}, device {device}, {clock} clock"
@@ -223,5 +241,8 @@ def main(files, validate, plot_path, speed, direction):
         plot_file(files[0], plot_path, speed_mm_s=speed, direction_deg=direction)
         click.echo(f"wrote {plot_path}")
         return
+    from playback.asset import refuse_crashing
+
     for path in files:
+        refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
         click.echo(record_summary(path) if is_playback_record(path) else summary(path))

@@ -66,11 +66,14 @@ def file_kind(path: str | Path) -> str:
     """
     import h5py
 
+    from playback.asset import refuse_crashing
+
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such file")
     if not h5py.is_hdf5(str(path)):
         raise InputError(path, "not an HDF5 file (expected a tactile asset or a playback record)")
+    refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
     with h5py.File(path, "r") as f:
         fmt = f.attrs.get("format", "")
     fmt = fmt.decode() if isinstance(fmt, bytes) else str(fmt)
@@ -500,9 +503,14 @@ def plot_file(path: str | Path, out_png: str | Path, *, speed_mm_s: float = 80.0
     HaptexError
         matplotlib missing, or (as InputError/AssetError) an unreadable file, one line.
     """
+    from playback.asset import corrupt_file_errors
+
     _matplotlib()
-    kind = file_kind(path)
-    fig = asset_figure(path, speed_mm_s=speed_mm_s, direction_deg=direction_deg) if kind == "asset" else record_figure(path)
+    if file_kind(path) == "asset":
+        fig = asset_figure(path, speed_mm_s=speed_mm_s, direction_deg=direction_deg)
+    else:
+        with corrupt_file_errors(path, "playback record"):  # its reader trusts the file's layout
+            fig = record_figure(path)
     out = Path(out_png)
     try:
         fig.savefig(out, dpi=dpi, format="png")

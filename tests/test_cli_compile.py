@@ -155,6 +155,30 @@ def test_corrupt_assets_are_invalid_in_one_line_each(tmp_path):
     assert unreadable >= 3
 
 
+def test_assets_that_crash_libhdf5_are_one_line_each(tmp_path):
+    # Seeds 126 and 299 of the corruption above (of 300 tried) damage a variable-length string
+    # attribute's heap, and libhdf5 crashed (SIGSEGV) reading it: the validator, the summary
+    # and the plot died with the process, no line said why. Each tool now reads the file first
+    # in a forked child (playback.asset.crash_signal) and refuses it in one line, exit 1.
+    import random
+
+    from asset_factory import write_test_asset
+
+    data = write_test_asset(tmp_path / "good.tact.h5").read_bytes()
+    for seed in (126, 299):
+        rng = random.Random(seed)
+        corrupt = bytearray(data)
+        for _ in range(rng.randint(1, 40)):
+            corrupt[rng.randrange(len(corrupt))] = rng.randrange(256)
+        path = tmp_path / f"corrupt{seed}.tact.h5"
+        path.write_bytes(corrupt)
+        for args in (["--validate", str(path)], [str(path)], ["--plot", str(tmp_path / "p.png"), str(path)]):
+            r = run("haptex-inspect", *args)
+            assert r.returncode == 1, (seed, args, r.returncode, r.stderr[-500:])
+            assert r.stderr.count("\n") == 1 and str(path) in r.stderr, (seed, args, r.stderr)
+        assert not (tmp_path / "p.png").exists()
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))

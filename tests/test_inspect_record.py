@@ -72,3 +72,38 @@ def test_inspect_record_and_asset_together(record, tmp_path):
     r = CliRunner().invoke(main, [str(record), str(asset)])
     assert r.exit_code == 0, r.output
     assert "haptex-play record" in r.output and "haptex tactile asset" in r.output
+
+
+def _malformed(record, path, edit):
+    """A copy of `record` at `path` with `edit(f)` applied to it."""
+    path.write_bytes(record.read_bytes())
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    return path
+
+
+def test_malformed_records_are_one_line_each(record, tmp_path):
+    # Records whose layout is damaged (as random bytes overwritten in a record did: 8 of 60
+    # gave a KeyError, IndexError or MemoryError traceback from the summary, which trusted
+    # the layout): the summary and the plot say so in one line naming the file, exit 1.
+    from haptex_compile.inspect_cli import main
+
+    def flat_a40(f):
+        a40 = f["frames/a40"][()]
+        del f["frames/a40"]
+        f["frames/a40"] = a40.ravel()
+
+    def short_late(f):
+        late = f["frames/late"][()]
+        del f["frames/late"]
+        f["frames/late"] = late[:-7]
+
+    edits = {"no_t_s": lambda f: f["frames"].__delitem__("t_s"), "flat_a40": flat_a40, "short_late": short_late}
+    for name, edit in edits.items():
+        path = _malformed(record, tmp_path / f"{name}.h5", edit)
+        for args in ([str(path)], ["--plot", str(tmp_path / f"{name}.png"), str(path)]):
+            r = CliRunner().invoke(main, args)
+            assert r.exit_code == 1 and isinstance(r.exception, SystemExit), (name, args, r.exception)
+            lines = r.output.strip().splitlines()
+            assert len(lines) == 1 and str(path) in lines[0], (name, r.output)
+        assert not (tmp_path / f"{name}.png").exists()
