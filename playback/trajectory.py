@@ -13,7 +13,7 @@ the state at its centre: the position there and the mean velocity over the frame
 Bad samples have one defined behaviour each (counted in :class:`SampleFilter`, warned once per
 kind with the first example):
 
-* NaN/inf or unparsable -> skipped;
+* NaN/inf or unparsable, or beyond ``MAX_TIME_S``, ``MAX_POSITION_MM``, ``MAX_ANGLE_DEG`` -> skipped;
 * time not increasing (backwards or duplicate) -> skipped;
 * a jump (implied speed above ``max_speed_mm_s``) or a gap longer than ``max_gap_s`` -> the
   sample starts a new segment: no velocity is inferred across the break, so the frames around it
@@ -37,6 +37,14 @@ from playback.errors import InputError
 
 LOG = logging.getLogger("haptex.play.trajectory")
 COLUMNS = ("t_s", "u_mm", "v_mm", "phi_deg")
+# Samples beyond these are skipped. A span between two finite float times can overflow (a file
+# from -1e308 s to 1e308 s ended in an OverflowError counting its frames), and far from 0 float64
+# times no longer resolve a frame's window (the limit: about 32 years); positions of 1e308 mm
+# made the contactors' positions inf - inf (NaN amplitudes, zeroed, and numpy's warnings). A
+# kilometre of fabric and 3e9 turns are beyond any experiment.
+MAX_TIME_S = 1e9
+MAX_POSITION_MM = 1e6
+MAX_ANGLE_DEG = 1e12
 
 
 @dataclass(frozen=True)
@@ -106,7 +114,7 @@ class SampleFilter:
     max_speed_mm_s: float = 1000.0
     max_gap_s: float = 0.25
     source: str = "trajectory"
-    counts: dict[str, int] = field(default_factory=lambda: {"nonfinite": 0, "backwards": 0,
+    counts: dict[str, int] = field(default_factory=lambda: {"nonfinite": 0, "range": 0, "backwards": 0,
                                                              "duplicate": 0, "jump": 0, "gap": 0})
     _last: tuple[float, float, float] | None = None
     segment: int = 0
@@ -115,6 +123,9 @@ class SampleFilter:
         """Segment number for a good sample, or ``None`` if it is skipped."""
         if not all(math.isfinite(x) for x in (t_s, u_mm, v_mm, phi_deg)):
             return self._bad("nonfinite", f"non-finite value skipped{where}")
+        if abs(t_s) > MAX_TIME_S or max(abs(u_mm), abs(v_mm)) > MAX_POSITION_MM or abs(phi_deg) > MAX_ANGLE_DEG:
+            return self._bad("range", f"value out of range (|t_s| <= {MAX_TIME_S:g} s, |u_mm|, |v_mm| <="
+                                      f" {MAX_POSITION_MM:g} mm, |phi_deg| <= {MAX_ANGLE_DEG:g}), sample skipped{where}")
         if self._last is not None:
             t_last, u_last, v_last = self._last
             dt = t_s - t_last

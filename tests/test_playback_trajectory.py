@@ -65,7 +65,7 @@ def test_csv_bad_samples(tmp_path, caplog, monkeypatch):
     p = tmp_path / "traj.csv"
     p.write_text("\n".join(lines) + "\n")
     tr = read_csv_trajectory(p)
-    assert tr.counts == {"nonfinite": 2, "backwards": 1, "duplicate": 1, "jump": 1, "gap": 0}
+    assert tr.counts == {"nonfinite": 2, "range": 0, "backwards": 1, "duplicate": 1, "jump": 1, "gap": 0}
     assert any("jump" in r.message for r in caplog.records)
     # Normal motion around t = 0.3 s: 50 mm/s.
     st = tr.state(0.3, 0.025)
@@ -77,6 +77,20 @@ def test_csv_bad_samples(tmp_path, caplog, monkeypatch):
         assert abs(st.vu_mm_s) <= 50.0 + 1e-9
     # Beyond the last sample: held, silent.
     assert tr.state(5.0, 0.025).vu_mm_s == 0.0
+
+
+def test_csv_samples_out_of_range_are_skipped(tmp_path):
+    # Finite but absurd values: times of +-1e308 s made the span inf and counting the frames
+    # raised OverflowError (a traceback from haptex-play); positions of 1e308 mm gave NaN
+    # amplitudes. Such samples are skipped, and the rest plays: 0 to 0.2 s, 8 frames of 25 ms.
+    p = tmp_path / "traj.csv"
+    p.write_text("t_s,u_mm,v_mm,phi_deg\n-1e308,0,0,0\n0,0,0,0\n0.1,5,0,0\n0.15,0,1e308,0\n"
+                 "0.2,10,0,0\n0.25,15,0,1e300\n1e308,0,0,0\n")
+    tr = read_csv_trajectory(p)
+    assert tr.counts["range"] == 4
+    assert (tr.t_start, tr.t_end) == (0.0, 0.2)
+    assert tr.frame_count(0.025) == 8
+    assert tr.state(0.1, 0.025).vu_mm_s == pytest.approx(50.0)
 
 
 def test_csv_errors(tmp_path):
