@@ -1602,12 +1602,76 @@ def _aligned_timing_rows(sides) -> list[str]:
     return rows
 
 
+def _ducc0_pair():
+    """``(rfft2, irfft2)`` with :mod:`haptex_compile.real_fft`'s signatures through ducc0's
+    FFTs (the successor of the pocketfft that scipy.fft ends in; not a dependency: GPL-2.0-or-later)."""
+    import ducc0
+
+    from haptex_compile import real_fft
+
+    def rfft2(a, workers):
+        if a.dtype == np.float32 and a.ndim == 2:
+            return ducc0.fft.r2c(a, axes=(0, 1), nthreads=workers)
+        return real_fft.rfft2(a, workers)
+
+    def irfft2(spectrum, shape, workers):
+        if spectrum.dtype == np.complex64 and spectrum.shape == (shape[0], shape[1] // 2 + 1):
+            return ducc0.fft.c2r(spectrum, axes=(0, 1), lastsize=shape[1], forward=False, inorm=2,
+                                 nthreads=workers, allow_overwriting_input=True)
+        return real_fft.irfft2(spectrum, shape, workers)
+
+    return rfft2, irfft2
+
+
+def fft_backend_section(quick: bool = False) -> list[str]:
+    """The default solver on the four surfaces' tiles at the issue's lights (light given) with
+    its FFT pair through scipy's pocketfft (``real_fft``, the default) and through ducc0, best
+    of 2 in alternating order: seconds per megapixel and normalised height errors. Run alone
+    (``--fft-backend``), where ducc0 is installed: it is not a dependency (its licence)."""
+    try:
+        rfft2, irfft2 = _ducc0_pair()
+    except ImportError:
+        return ["", "The FFT backend table needs ducc0 (`pip install ducc0`), which is not installed."]
+    import ducc0
+
+    n = 256 if quick else 1024
+    rows, totals = [], np.zeros(2)
+    cases = list(_timing_cases(_surfaces(n)))
+    # Untimed: the first solve of a process loads the compiled kernels (numba's cache).
+    _best_solve(cases[0][3][True][:64, :64], cases[0][2], True, repeats=1)
+    for name, truth, light, images in cases:
+        best, errors = [np.inf, np.inf], [0.0, 0.0]
+        for order in ((0, 1), (1, 0)):
+            for k in order:
+                with (contextlib.nullcontext() if k == 0 else mock.patch.multiple(
+                        shading_variational.real_fft, rfft2=rfft2, irfft2=irfft2)):
+                    seconds, res = _best_solve(images[True], light, True, repeats=1)
+                best[k] = min(best[k], seconds)
+                errors[k] = normalised_height_error(res.height, truth)
+        totals += best
+        mpx = n * n / 1e6
+        rows.append(f"| {name} | {light.slant_deg:g}, {light.tilt_deg:g} | {best[0] / mpx:.2f} | {errors[0]:.3f}"
+                    f" | {best[1] / mpx:.2f} | {errors[1]:.3f} | {best[1] / best[0]:.2f} |")
+    rows.append(f"| all | | {totals[0]:.2f} s | | {totals[1]:.2f} s | | {totals[1] / totals[0]:.2f} |")
+    return ["", f"The default solver's FFT pair through scipy's pocketfft (`haptex_compile.real_fft`, the default;"
+            f" baseline) and through ducc0 {ducc0.__version__} (its successor, GPL-2.0-or-later, not a"
+            f" dependency), tiles of {n} x {n} px, light given: seconds per megapixel (best of 2 in"
+            " alternating order), normalised height error and the time ratio:", "",
+            "| surface | slant, tilt (°) | pocketfft: s per megapixel | error | ducc0: s per megapixel | error | ratio |",
+            "| --- | --- | --- | --- | --- | --- | --- |", *rows]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small images (under a minute)")
     parser.add_argument("--policy-times", nargs=3, metavar=("on|off", "SIDE", "REPEATS"),
                         help="print _policy_times as JSON, with the malloc policy on or off (a fresh process)")
+    parser.add_argument("--fft-backend", action="store_true",
+                        help="print only the table of the solver's FFTs through pocketfft and ducc0 (needs ducc0)")
     args = parser.parse_args()
+    if args.fft_backend:
+        print("\n".join(fft_backend_section(quick=args.quick)))
+        return
     if args.policy_times:
         mode, side, repeats = args.policy_times
         malloc_policy.ENABLED = mode == "on"
