@@ -8,9 +8,14 @@ inputs give byte-identical files (EXR stores no time stamp).
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import logging
 import os
+import sys
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import OpenEXR
@@ -21,6 +26,7 @@ from haptex_compile.file_modes import new_file_mode
 __all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
+LOG = logging.getLogger("haptex.io")
 
 # Header attributes the library sets itself; user attributes must not override them.
 _RESERVED = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
@@ -94,7 +100,8 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
     except OSError as exc:
         raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
     try:
-        OpenEXR.File(header, stored).write(tmp)
+        with _library_output(path):
+            OpenEXR.File(header, stored).write(tmp)
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)  # the data is on disk before the name points at it
@@ -112,6 +119,48 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
         if isinstance(exc, RuntimeError):  # the library's own I/O errors
             raise InputError(path, f"cannot write EXR: {_first_line(exc)}") from None
         raise
+
+
+def _flush_c_streams() -> None:
+    """Flush the C library's stdio buffers (where the OpenEXR library's C++ streams write)."""
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # pragma: no cover - no C library to ask (Windows)
+        pass
+
+
+@contextlib.contextmanager
+def _library_output(path: str | os.PathLike) -> Iterator[None]:
+    """Keep what the OpenEXR library prints itself on the process's standard output and error
+    while reading or writing `path` out of them: on a corrupt file it printed a "Warning: ..." line on
+    stdout and its own error line on stderr before ours (three lines for one bad input).
+    Those lines are logged instead, at debug level (``-v``): the caller's one-line error says
+    what went wrong. The file descriptors are shared by the process's threads, so this is only
+    for the short reads and writes here."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+    _flush_c_streams()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield
+            finally:
+                _flush_c_streams()
+                os.dup2(saved[0], 1)
+                os.dup2(saved[1], 2)
+                sink.seek(0)
+                for line in sink.read(65536).decode("utf-8", "replace").splitlines():
+                    if line.strip():
+                        LOG.debug("%s: OpenEXR library: %s", path, line.strip())
+    finally:
+        for fd in saved:
+            os.close(fd)
 
 
 def _first_line(exc: BaseException) -> str:
@@ -158,44 +207,50 @@ def read_exr_channels(path: str | os.PathLike, *, max_pixels: int = 200_000_000
         raise InputError(path, "not an OpenEXR file (bad magic number)")
 
     try:
-        head = OpenEXR.File(str(p), header_only=True)
-        if len(head.parts) != 1:
-            raise InputError(path, f"multi-part EXR ({len(head.parts)} parts) is not supported; "
-                                   "write a single-part file")
-        header = head.header()
-        storage = header.get("type", OpenEXR.scanlineimage)
-        if storage not in (OpenEXR.scanlineimage, OpenEXR.tiledimage):
-            raise InputError(path, f"EXR storage {storage.name} is not supported "
-                                   "(only flat scanline or tiled images)")
-        (x0, y0), (x1, y1) = (np.asarray(c, dtype=np.int64) for c in header["dataWindow"])
-        nx, ny = int(x1 - x0 + 1), int(y1 - y0 + 1)
-        if nx <= 0 or ny <= 0:
-            raise InputError(path, f"corrupt EXR: empty data window ({nx} x {ny})")
-        if nx * ny > max_pixels:
-            raise InputError(path, f"EXR claims {nx} x {ny} pixels ({nx * ny / 1e6:.1f} MP), more "
-                                   f"than the limit of {max_pixels / 1e6:.1f} MP")
-        declared = header.get("channels", [])
-        if not declared:
-            raise InputError(path, "EXR file has no channels")
-        for channel in declared:
-            if channel.xSampling != 1 or channel.ySampling != 1:
-                raise InputError(path, f"EXR channel {channel.name!r} is sub-sampled "
-                                       f"({channel.xSampling} x {channel.ySampling}); not supported")
-        full = OpenEXR.File(str(p), separate_channels=True)
-        result: dict[str, np.ndarray] = {}
-        for name, channel in full.channels().items():
-            pixels = channel.pixels
-            if not isinstance(pixels, np.ndarray) or pixels.shape != (ny, nx):
-                raise InputError(path, f"corrupt EXR: channel {name!r} does not fill the "
-                                       f"{nx} x {ny} data window")
-            result[str(name)] = np.array(pixels, dtype=_STORED_DTYPE.get(channel.type().name,
-                                                                         pixels.dtype))
+        with _library_output(path):
+            return _read_channels(p, path, max_pixels)
     except InputError:
         raise
     except MemoryError:
         raise InputError(path, "EXR file too large to read into memory") from None
     except Exception as exc:  # the binding raises RuntimeError, ValueError, TypeError, ...
         raise InputError(path, f"corrupt or unreadable EXR file ({_first_line(exc)})") from None
+
+
+def _read_channels(p: Path, path: str | os.PathLike, max_pixels: int) -> dict[str, np.ndarray]:
+    """:func:`read_exr_channels` past its checks of the path and the magic number."""
+    head = OpenEXR.File(str(p), header_only=True)
+    if len(head.parts) != 1:
+        raise InputError(path, f"multi-part EXR ({len(head.parts)} parts) is not supported; "
+                               "write a single-part file")
+    header = head.header()
+    storage = header.get("type", OpenEXR.scanlineimage)
+    if storage not in (OpenEXR.scanlineimage, OpenEXR.tiledimage):
+        raise InputError(path, f"EXR storage {storage.name} is not supported "
+                               "(only flat scanline or tiled images)")
+    (x0, y0), (x1, y1) = (np.asarray(c, dtype=np.int64) for c in header["dataWindow"])
+    nx, ny = int(x1 - x0 + 1), int(y1 - y0 + 1)
+    if nx <= 0 or ny <= 0:
+        raise InputError(path, f"corrupt EXR: empty data window ({nx} x {ny})")
+    if nx * ny > max_pixels:
+        raise InputError(path, f"EXR claims {nx} x {ny} pixels ({nx * ny / 1e6:.1f} MP), more "
+                               f"than the limit of {max_pixels / 1e6:.1f} MP")
+    declared = header.get("channels", [])
+    if not declared:
+        raise InputError(path, "EXR file has no channels")
+    for channel in declared:
+        if channel.xSampling != 1 or channel.ySampling != 1:
+            raise InputError(path, f"EXR channel {channel.name!r} is sub-sampled "
+                                   f"({channel.xSampling} x {channel.ySampling}); not supported")
+    full = OpenEXR.File(str(p), separate_channels=True)
+    result: dict[str, np.ndarray] = {}
+    for name, channel in full.channels().items():
+        pixels = channel.pixels
+        if not isinstance(pixels, np.ndarray) or pixels.shape != (ny, nx):
+            raise InputError(path, f"corrupt EXR: channel {name!r} does not fill the "
+                                   f"{nx} x {ny} data window")
+        result[str(name)] = np.array(pixels, dtype=_STORED_DTYPE.get(channel.type().name,
+                                                                     pixels.dtype))
     if not result:
         raise InputError(path, "EXR file has no channels")
     return result
