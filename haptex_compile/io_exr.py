@@ -9,10 +9,8 @@ inputs give byte-identical files (EXR stores no time stamp).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import os
-import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -22,6 +20,7 @@ import OpenEXR
 
 from haptex_compile.errors import InputError
 from haptex_compile.file_modes import new_file_mode
+from haptex_compile.native_output import captured_native_output
 
 __all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]
 
@@ -121,46 +120,19 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
         raise
 
 
-def _flush_c_streams() -> None:
-    """Flush the C library's stdio buffers (where the OpenEXR library's C++ streams write)."""
-    try:
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError):  # pragma: no cover - no C library to ask (Windows)
-        pass
-
-
 @contextlib.contextmanager
 def _library_output(path: str | os.PathLike) -> Iterator[None]:
-    """Keep what the OpenEXR library prints itself on the process's standard output and error
-    while reading or writing `path` out of them: on a corrupt file it printed a "Warning: ..." line on
-    stdout and its own error line on stderr before ours (three lines for one bad input).
-    Those lines are logged instead, at debug level (``-v``): the caller's one-line error says
-    what went wrong. The file descriptors are shared by the process's threads, so this is only
-    for the short reads and writes here."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (AttributeError, ValueError, OSError):
-            pass
-    _flush_c_streams()
-    saved = [os.dup(1), os.dup(2)]
+    """Keep what the OpenEXR library prints itself while reading or writing `path` out of the
+    tools' output: on a corrupt file it printed a "Warning: ..." line on stdout and its own error
+    line on stderr before ours. Its lines are logged at debug level (``-vv``): the caller's
+    one-line error says what went wrong."""
+    lines: list[str] = []
     try:
-        with tempfile.TemporaryFile() as sink:
-            os.dup2(sink.fileno(), 1)
-            os.dup2(sink.fileno(), 2)
-            try:
-                yield
-            finally:
-                _flush_c_streams()
-                os.dup2(saved[0], 1)
-                os.dup2(saved[1], 2)
-                sink.seek(0)
-                for line in sink.read(65536).decode("utf-8", "replace").splitlines():
-                    if line.strip():
-                        LOG.debug("%s: OpenEXR library: %s", path, line.strip())
-    finally:
-        for fd in saved:
-            os.close(fd)
+        with captured_native_output() as lines:
+            yield
+    finally:  # (the descriptors are back: the log reaches the terminal)
+        for line in lines:
+            LOG.debug("%s: OpenEXR library: %s", path, line)
 
 
 def _first_line(exc: BaseException) -> str:

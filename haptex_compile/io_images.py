@@ -13,6 +13,7 @@ when it knows nothing, are ignored.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 import struct
@@ -24,6 +25,9 @@ import cv2
 import numpy as np
 
 from haptex_compile.errors import InputError
+from haptex_compile.native_output import captured_native_output
+
+LOG = logging.getLogger("haptex.io")
 
 __all__ = ["ImageData", "SUPPORTED_IMAGE_SUFFIXES", "read_image", "MIN_SIDE_PX"]
 
@@ -452,12 +456,15 @@ def _identify(data: bytes) -> str:
     raise _Bad("not a JPEG, PNG, BMP or TIFF image (unrecognised file content)")
 
 
-def _decode(data: bytes, flags: int) -> np.ndarray | None:
-    """cv2.imdecode with OpenCV's own log messages silenced (our error says it once)."""
+def _decode(data: bytes, flags: int) -> tuple[np.ndarray | None, list[str]]:
+    """cv2.imdecode with OpenCV's own log messages silenced (our error says it once), and the
+    lines its codecs print themselves (libjpeg: "Corrupt JPEG data: ...") kept for the caller."""
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        return cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+        with captured_native_output() as lines:
+            pixels = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+        return pixels, lines
     finally:
         cv2.utils.logging.setLogLevel(level)
 
@@ -543,11 +550,13 @@ def read_image(path: str | os.PathLike, *, max_pixels: int = 200_000_000) -> Ima
         else:
             flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
         try:
-            pixels = _decode(data, flags)
+            pixels, said = _decode(data, flags)
         except cv2.error as exc:
             raise _Bad(f"cannot decode {fmt} data ({str(exc).strip().splitlines()[-1]})") from None
         if pixels is None or pixels.size == 0:
-            raise _Bad(f"cannot decode {fmt} data (corrupt or unsupported file)")
+            raise _Bad(f"cannot decode {fmt} data ({said[0] if said else 'corrupt or unsupported file'})")
+        for line in dict.fromkeys(said):  # decoded, with the codec's complaints (a damaged JPEG)
+            LOG.warning("%s: the %s decoder says: %s", path, fmt, line)
         if pixels.shape[:2] not in ((h, w), (w, h)):  # (w, h): EXIF orientation applied
             raise _Bad(f"decoded {pixels.shape[1]} x {pixels.shape[0]} pixels but the header "
                        f"says {w} x {h} (corrupt file)")

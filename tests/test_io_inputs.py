@@ -815,3 +815,25 @@ def test_fuzz_random_bytes_behind_every_magic(tmp_path, reader_name):
         _try(reader_name, tmp_path / "random", MAGICS[magic] + tail)
 
     run()
+
+
+def test_a_damaged_jpeg_is_reported_once_in_our_words(tmp_path, capfd, caplog, monkeypatch):
+    # libjpeg prints "Corrupt JPEG data: ..." on stderr itself (80 of 150 damaged JPEGs in a
+    # fuzz). A JPEG that still decodes gives one warning naming the file; one that does not
+    # gives the decoder's words as the error's reason; nothing raw reaches stdout or stderr.
+    import logging
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    pixels = (np.random.default_rng(0).random((48, 64)) * 255).astype(np.uint8)
+    ok, encoded = cv2.imencode(".jpg", pixels)
+    data = encoded.tobytes()
+    padded = tmp_path / "padded.jpg"
+    padded.write_bytes(data[:-2] + b"\0" * 100 + data[-2:])  # 100 bytes of junk before the end marker
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        image = read_image(padded)
+    assert image.grey.shape == (48, 64)
+    said = [r.getMessage() for r in caplog.records if "decoder says" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(f"{padded}: the JPEG decoder says: Corrupt JPEG data: ")
+    assert said[0].endswith("extraneous bytes before marker 0xd9")
+    out, err = capfd.readouterr()
+    assert "Corrupt JPEG" not in out + err
