@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from haptex_compile.thresholds import ThresholdCurves, idealised_thresholds
+from haptex_compile.thresholds import PLAUSIBLE_MIN_UM, ThresholdCurves, idealised_thresholds
 
 DEFAULT_SUMMATION_EXPONENT = 1.23
 DECOMPOSE_CHUNK = 1 << 16  # values per pass of the decomposition: temporaries stay in cache
@@ -72,10 +72,27 @@ class TwoColourModel:
             raise ValueError("base frequencies must be increasing and inside the band")
         if not (0.5 <= self.summation_exponent <= 4.0):
             raise ValueError("summation exponent must be in [0.5, 4]")
-        m = self.matrix()
-        if not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-12 * np.abs(m).max() ** 2:
+        # Extreme user thresholds (1e-300 um, 1e300 um) overflow or divide by zero here: the
+        # checks below say so in one line, numpy's warnings would only add lines before it.
+        with np.errstate(all="ignore"):
+            m = self.matrix()
+            singular = not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-12 * np.abs(m).max() ** 2
+            w = self.weights(np.asarray(self.base_frequencies_hz))
+        # The curves where the band weighs (from a hundredth of its low corner to its top),
+        # continued from the table's ends: a threshold over the band's weight below a
+        # picometre is not a skin's (tables of 1e-300 um gave inf weights, then NaN powers and
+        # numpy's warnings; the band's roll-off forgives steep ends far below its low corner).
+        f = np.geomspace(0.01 * self.band.low_hz, self.band.high_stop_hz, 2001)
+        b = self.band.weight(f)
+        for name, curve in (("T_p", self.thresholds.p), ("T_np", self.thresholds.np_)):
+            t = curve(f)
+            k = int(np.argmax(b / t))
+            if not t[k] >= PLAUSIBLE_MIN_UM * b[k]:
+                raise ValueError(f"{name} falls to {t[k]:.3g} um at {f[k]:.3g} Hz (the table continued from its"
+                                 f" ends; band weight {b[k]:.2g} there), below {PLAUSIBLE_MIN_UM:g} um: not a"
+                                 " skin's threshold; check the values are um, peak")
+        if singular:
             raise ValueError("the 2 x 2 colour system is singular for these thresholds")
-        w = self.weights(np.asarray(self.base_frequencies_hz))
         if not (w[1][0] > w[0][0] and w[0][1] > w[1][1]):
             raise ValueError(
                 "thresholds must satisfy T_np(f_low) < T_p(f_low) and T_p(f_high) < T_np(f_high)"

@@ -4,7 +4,8 @@ A :class:`ThresholdCurves` holds tabulated thresholds (displacement amplitude at
 µm peak) and evaluates them at any frequency by linear interpolation of dB against
 log-frequency, with every corner rounded over about ``SMOOTHING_HZ`` (8 Hz: a sharp corner
 would give the weighting filter a long ringing tail). Outside the tabulated range the end
-segments' slopes are continued (a monotone extrapolation on each side; never NaN);
+segments' slopes are continued (a monotone extrapolation on each side; never NaN, never
+below ``FLOOR_UM``);
 non-positive frequencies get an infinite threshold, so they weigh nothing.
 
 The built-in curves (:func:`idealised_thresholds`) are *constructed*, not measured: straight
@@ -20,6 +21,12 @@ from importlib import resources
 import numpy as np
 
 SMOOTHING_HZ = 8.0  # width (Hz) over which each corner of a threshold curve is rounded
+# Evaluated thresholds never fall below this (µm): a steep end segment of a user's table,
+# continued far outside it, underflowed to 0 and made 0 / 0 weights outside the band. Within
+# the band, :class:`haptex_compile.colours.TwoColourModel` refuses curves below
+# ``PLAUSIBLE_MIN_UM`` instead (no skin feels a femtometre).
+FLOOR_UM = 1e-12
+PLAUSIBLE_MIN_UM = 1e-6
 RAMP_CHUNK = 1024  # frequencies whose corner ramps are evaluated together
 
 
@@ -101,7 +108,7 @@ class ThresholdCurves:
                 ramps[lo:lo + RAMP_CHUNK] = np.einsum("ij,j->i", ramp, jumps * sigma)
             db = db + ramps.reshape(x.shape)
         with np.errstate(over="ignore"):
-            out = np.power(10.0, db / 20.0)
+            out = np.maximum(np.power(10.0, db / 20.0), FLOOR_UM)
         return np.where(positive, out, np.inf)
 
     def p(self, freq_hz: np.ndarray | float) -> np.ndarray:

@@ -505,3 +505,23 @@ def test_a_footprint_passage_far_longer_than_the_frame_makes_the_window_its_gaus
     window = frame_window(offsets, frame_ms, sigma)
     assert np.abs(window - np.interp(offsets, t, convolved)).max() < 1e-5 * convolved.max()
     assert _window_table(frame_ms, sigma)[0].size < 2000
+
+
+@pytest.mark.parametrize("freq, p_um, np_um", [
+    ([1e-300, 1e300], [1e-30, 1e-300], [5e-324, 1e-10]),  # compiled, with NaN powers on the way
+    ([1e-300, 1e300], [1000.0, 5e-324], [1e300, 1e300]),  # singular
+    ([800.0, 801.0], [5e-324, 1.7e308], [2.5, 2.5]),
+])
+def test_absurd_threshold_tables_are_one_error_without_numpy_warnings(freq, p_um, np_um):
+    # User tables of 1e-300 um (a fuzz of threshold CSVs): numpy's overflow and divide-by-zero
+    # warnings reached stderr before the one-line error, and one table even compiled, with
+    # "invalid value" warnings from the frame analysis. Now: one ValueError, no warning.
+    import warnings
+
+    from haptex_compile.thresholds import ThresholdCurves
+
+    curves = ThresholdCurves(np.array(freq), np.array(p_um), np.array(np_um), "fuzz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError):
+            TwoColourModel(thresholds=curves)
