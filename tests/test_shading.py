@@ -1929,12 +1929,16 @@ def test_light_search_sweeps_the_tilt_where_the_statistics_mislead():
     # A smooth relief on an oblique 16 px lattice lit at 15°, 30°: the lattice's own anisotropy
     # turns the image statistics' tilt axis to 179°, and the local searches from there settled
     # on a plateau 41° off (22°, 349°, flagged; height error 0.83). The tilt sweep at the first
-    # knee finds the true light's well, where the albedo is free.
+    # knee finds the true light's well, where the albedo is free. (Whether the final stage's
+    # compass search then stays in the well, unflagged, or first steps onto the plateau, whose
+    # misfit on this image is lower still (3.2e-4 at 38°, 10.7° against 2.3e-3), and comes
+    # back down to the well by the plateau search, flagged, turns on the last bits of the
+    # solver's sums: unflagged on the Intel hosts, flagged on an AMD EPYC. The light is the
+    # same.)
     truth = Light(15.0, 30.0)
     img, est, e_found, e_given = _lattice_estimate(256, (4, 16), truth)
     # Beyond the final stage's tilt scan:
     assert tilt_axis_difference_deg(shading_light._tilt_axis(img, valid_pixels(img))[0], 30.0) > shading_light.TILT_SCAN_DEG
-    assert not est.albedo_at_bound
     _assert_near(est, truth)
     assert e_found <= e_given + 0.02
 
