@@ -80,12 +80,7 @@ def crash_signal(path: str | Path) -> str | None:
             code = 1
         finally:
             os._exit(code)
-    while True:
-        try:
-            _, status = os.waitpid(pid, 0)
-            break
-        except InterruptedError:  # pragma: no cover - retried by Python itself since 3.5
-            continue
+    _, status = os.waitpid(pid, 0)  # (interrupted waits are retried by Python itself)
     if os.WIFSIGNALED(status):
         number = os.WTERMSIG(status)
         try:
