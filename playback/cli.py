@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from playback.cli_common import command, common_options
+from playback.cli_common import command, common_options, refuse_overwrites
 
 LOG = logging.getLogger("haptex.play")
 
@@ -69,6 +69,11 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
     if max_frames is not None and max_frames < 1:
         raise click.UsageError("--max-frames must be >= 1")
 
+    # Nothing this run reads is overwritten (``--record`` on the asset replaced it).
+    writes = [(what, path) for what, path in (("--record", record_path),
+                                              ("the device file", device[5:] if device.startswith("file:") else None))
+              if path]
+    refuse_overwrites(writes, [p for p in (asset, profile_path, trajectory_csv) if p])
     data = read_asset(asset, load_surface=(mode == "direct"))
     profile = load_profile(profile_path)
     if profile_path is None and device != "usb" and profile.count != data.n_contactors:

@@ -10,7 +10,9 @@ from __future__ import annotations
 import functools
 import inspect
 import logging
+import os
 import sys
+from pathlib import Path
 from typing import Any, Callable
 
 import click
@@ -98,3 +100,27 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
 def show_progress() -> bool:
     """Progress bars only when stderr is an interactive terminal."""
     return sys.stderr.isatty()
+
+
+def _same_file(a: str, b: str) -> bool:
+    """`a` and `b` name one file: the same existing file (links included), or the same path."""
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+        return pa.resolve() == pb.resolve()
+    except (OSError, RuntimeError):  # unreadable, or a symlink loop: not known to be one file
+        return False
+
+
+def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str]) -> None:
+    """A usage error (one line) where an output would overwrite an input of the run or another
+    output: `outputs` are (what writes it, path) pairs, `inputs` paths. A typo such as
+    ``haptex-compile h.npy -o h.npy`` replaced the input with the asset."""
+    for i, (what, out) in enumerate(outputs):
+        for source in inputs:
+            if _same_file(out, source):
+                raise click.UsageError(f"{what} {out} is an input of this run: it would be overwritten")
+        for other_what, other in outputs[:i]:
+            if _same_file(out, other):
+                raise click.UsageError(f"{other_what} and {what} would both write {out}")

@@ -199,6 +199,28 @@ def test_a_corrupt_exr_is_one_line_and_nothing_on_stdout(tmp_path):
     assert not out.exists()
 
 
+def test_outputs_never_overwrite_inputs_or_each_other(tmp_path, scene_file):
+    # `-o h.npy` on the input h.npy replaced the height map with the asset, and two inputs of
+    # one name (a.npy, sub/a.npy) to --out-dir wrote one asset over the other. Refused before
+    # any work, in one line (exit 2); nothing written, the inputs intact.
+    height = tmp_path / "h.npy"
+    np.save(height, np.random.default_rng(0).standard_normal((64, 64)))
+    (tmp_path / "sub").mkdir()
+    twin = tmp_path / "sub" / "h.npy"
+    twin.write_bytes(height.read_bytes())
+    before = height.read_bytes(), scene_file.read_bytes()
+    cases = [["-o", str(height)], ["-o", str(tmp_path / "h.tact.h5"), "--md", str(scene_file)],
+             ["-o", str(tmp_path / "h.tact.h5"), "--exr", str(tmp_path / "h.tact.h5")]]
+    for extra in cases:
+        r = run("haptex-compile", str(height), "--pixel-size", "20um", "--scene", str(scene_file), *extra)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, (extra, r.stderr)
+    r = run("haptex-compile", str(height), str(twin), "--out-dir", str(tmp_path / "out"), "--pixel-size", "20um",
+            "--scene", str(scene_file))
+    assert r.returncode == 2 and "both write" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert (height.read_bytes(), scene_file.read_bytes()) == before
+    assert not (tmp_path / "h.tact.h5").exists() and not (tmp_path / "out").exists()
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))

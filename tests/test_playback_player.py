@@ -281,6 +281,21 @@ def test_cli_errors(tmp_path, asset_path):
     assert r.exit_code == 1 and "duration" in r.output
 
 
+def test_cli_never_overwrites_what_it_reads(tmp_path, asset_path):
+    # `--record` naming the asset being played replaced the asset with the record; the raw
+    # packet sink likewise. Refused in one line (exit 2), the asset intact.
+    before = asset_path.read_bytes()
+    args = [str(asset_path), "--device", "null", "--fast", "--sweep", "speed=80,duration=0.25"]
+    for extra in (["--record", str(asset_path)], ["--device", f"file:{asset_path}"],
+                  ["--record", str(tmp_path / "pk.bin"), "--device", f"file:{tmp_path / 'pk.bin'}"]):
+        r = CliRunner().invoke(main, args + extra)
+        assert r.exit_code == 2, (extra, r.output)
+        lines = r.output.strip().splitlines()
+        assert len(lines) == 1 and ("input of this run" in lines[0] or "both write" in lines[0]), lines
+    assert asset_path.read_bytes() == before
+    assert not (tmp_path / "pk.bin").exists()
+
+
 def test_cli_ctrl_c_exit_0(tmp_path, asset_path, monkeypatch):
     calls = {"n": 0}
     orig = VirtualClock.sleep_until
