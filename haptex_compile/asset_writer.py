@@ -48,6 +48,7 @@ from haptex_compile.scene import Scene
 from haptex_compile.surface import Surface
 from haptex_compile.thresholds import SMOOTHING_HZ
 from haptex_compile.tables import Tables
+from playback.paths import check_replaceable
 
 FORMAT_NAME = "haptex-tactile-asset"
 FORMAT_VERSION = "1.0"
@@ -162,6 +163,7 @@ def _table_chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
 def write_asset(path: str | Path, content: AssetContent) -> None:
     """Write `content` to `path` atomically (temp file + rename); an error leaves no file."""
     path = Path(path)
+    check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from playback.cli_common import EXIT_BAD_INPUT, command, common_options, refuse_overwrites, show_progress
+from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -141,6 +142,7 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
             LOG.info("%s -> %s", spec, out)
     if md_path and not failures:
         lines = [f"{out}: {' '.join(_dependencies(s, scene_path, kes, scene))}" for s, out in zip(inputs, outs)]
+        check_replaceable(md_path)
         tmp = f"{md_path}.tmp{os.getpid()}"
         Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
         os.replace(tmp, md_path)

@@ -21,6 +21,7 @@ import OpenEXR
 from haptex_compile.errors import InputError
 from haptex_compile.file_modes import new_file_mode
 from haptex_compile.native_output import captured_native_output
+from playback.paths import check_replaceable
 
 __all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]
 
@@ -90,6 +91,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
         header[key] = text
 
     target = Path(path)
+    check_replaceable(target)
     directory = target.parent if str(target.parent) else Path(".")
     if not directory.is_dir():
         raise InputError(path, "cannot write: the output directory does not exist")

@@ -70,10 +70,9 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         raise click.UsageError("--max-frames must be >= 1")
 
     # Nothing this run reads is overwritten (``--record`` on the asset replaced it).
-    writes = [(what, path) for what, path in (("--record", record_path),
-                                              ("the device file", device[5:] if device.startswith("file:") else None))
-              if path]
-    refuse_overwrites(writes, [p for p in (asset, profile_path, trajectory_csv) if p])
+    sink = [("the device file", device[5:])] if device.startswith("file:") else []
+    refuse_overwrites([("--record", record_path)] if record_path else [],
+                      [p for p in (asset, profile_path, trajectory_csv) if p], direct=sink)
     data = read_asset(asset, load_surface=(mode == "direct"))
     profile = load_profile(profile_path)
     if profile_path is None and device != "usb" and profile.count != data.n_contactors:

@@ -18,6 +18,7 @@ from typing import Any, Callable
 import click
 
 from playback.errors import HaptexError
+from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex")
 EXIT_BAD_INPUT = 1
@@ -113,14 +114,24 @@ def _same_file(a: str, b: str) -> bool:
         return False
 
 
-def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str]) -> None:
+def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str],
+                      direct: list[tuple[str, str]] = ()) -> None:
     """A usage error (one line) where an output would overwrite an input of the run or another
-    output: `outputs` are (what writes it, path) pairs, `inputs` paths. A typo such as
+    output: `outputs` are (what writes it, path) pairs written through a temporary file and a
+    rename, which must not be devices, pipes or sockets either (see
+    :func:`playback.paths.check_replaceable`); `direct` those opened and written in place (a
+    raw packet sink may be a pipe); `inputs` paths. A typo such as
     ``haptex-compile h.npy -o h.npy`` replaced the input with the asset."""
-    for i, (what, out) in enumerate(outputs):
+    for what, out in outputs:
+        try:
+            check_replaceable(out)
+        except HaptexError as exc:
+            raise click.UsageError(f"{what} {exc}") from None
+    every = [*outputs, *direct]
+    for i, (what, out) in enumerate(every):
         for source in inputs:
             if _same_file(out, source):
                 raise click.UsageError(f"{what} {out} is an input of this run: it would be overwritten")
-        for other_what, other in outputs[:i]:
+        for other_what, other in every[:i]:
             if _same_file(out, other):
                 raise click.UsageError(f"{other_what} and {what} would both write {out}")

@@ -35,6 +35,7 @@ import h5py
 import numpy as np
 
 from playback.errors import InputError
+from playback.paths import check_replaceable
 
 RECORD_FORMAT = "haptex-playback-record"
 RECORD_VERSION = "1.0"
@@ -72,6 +73,7 @@ class Recorder:
     def __init__(self, path: str | Path, n_contactors: int, n_channels: int, packet_size: int,
                  attrs: dict[str, Any] | None = None, chunk: int = 256) -> None:
         self.path = Path(path)
+        check_replaceable(self.path)
         self.tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
         spec = dict(self._SPEC)
         spec.update({"a40": (np.float32, (n_contactors,)), "a320": (np.float32, (n_contactors,)),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -219,6 +220,22 @@ def test_outputs_never_overwrite_inputs_or_each_other(tmp_path, scene_file):
     assert r.returncode == 2 and "both write" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert (height.read_bytes(), scene_file.read_bytes()) == before
     assert not (tmp_path / "h.tact.h5").exists() and not (tmp_path / "out").exists()
+
+
+def test_outputs_never_replace_a_device_pipe_or_socket(tmp_path, scene_file):
+    # Outputs go to a temporary file renamed over their name: as root, `-o /dev/null` (or
+    # --md, --exr) replaced the system's /dev/null with a regular file. A FIFO stands in for the
+    # device here: refused in one line (exit 2), still a FIFO.
+    import stat
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    out = tmp_path / "x.tact.h5"
+    for extra in (["-o", str(fifo)], ["-o", str(out), "--md", str(fifo)], ["-o", str(out), "--exr", str(fifo)]):
+        r = run("haptex-compile", SPEC, "--scene", str(scene_file), *extra)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and "pipe" in r.stderr, (extra, r.stderr)
+        assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not out.exists()
 
 
 def test_output_is_byte_identical(tmp_path, scene_file, asset):

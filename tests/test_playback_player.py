@@ -296,6 +296,25 @@ def test_cli_never_overwrites_what_it_reads(tmp_path, asset_path):
     assert not (tmp_path / "pk.bin").exists()
 
 
+def test_record_never_replaces_a_device_pipe_or_socket(tmp_path, asset_path):
+    # The record is renamed over its name from a temporary file: `--record /dev/null` would
+    # replace the device. A FIFO stands in for it: refused (exit 2), still a FIFO, and the
+    # recorder itself refuses it too.
+    import os
+    import stat
+
+    from playback.record import Recorder
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    r = CliRunner().invoke(main, [str(asset_path), "--device", "null", "--fast", "--sweep", "speed=80,duration=0.25",
+                                  "--record", str(fifo)])
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    with pytest.raises(InputError, match="pipe"):
+        Recorder(fifo, 24, 24, 64)
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
 def test_cli_ctrl_c_exit_0(tmp_path, asset_path, monkeypatch):
     calls = {"n": 0}
     orig = VirtualClock.sleep_until
