@@ -6,25 +6,25 @@ import sys
 
 import click
 
-from playback.cli_common import command, common_options, refuse_overwrites
+from playback.cli_common import PathParam, command, common_options, refuse_overwrites
 
 LOG = logging.getLogger("haptex.play")
 
 
 @command()
-@click.argument("asset", type=click.Path(dir_okay=False))
+@click.argument("asset", type=PathParam(dir_okay=False))
 @click.option("--device", "device", default="sim", show_default=True,
               help="sim (emulated controller via pyusb), usb, null, or file:PATH (raw packets).")
-@click.option("--profile", "profile_path", type=click.Path(dir_okay=False), default=None,
+@click.option("--profile", "profile_path", type=PathParam(dir_okay=False), default=None,
               help="Device profile TOML (default: the built-in HAPTEX profile; for sim, null and file devices sized to the asset's array).")
 @click.option("--sweep", default=None, metavar="SPEC",
               help="Constant motion, e.g. speed=80,direction=0,duration=5[,u=0,v=0,phi=0] (mm/s, deg, s, mm).")
-@click.option("--trajectory", "trajectory_csv", type=click.Path(dir_okay=False), default=None,
+@click.option("--trajectory", "trajectory_csv", type=PathParam(dir_okay=False), default=None,
               help="CSV with header t_s,u_mm,v_mm,phi_deg.")
 @click.option("--live", is_flag=True, help="Read t_s,u_mm,v_mm,phi_deg lines from stdin as they arrive.")
 @click.option("--mode", type=click.Choice(["tables", "direct"]), default="tables", show_default=True,
               help="tables: interpolate the asset's tables; direct: the compiler's reference renderer.")
-@click.option("--record", "record_path", type=click.Path(dir_okay=False), default=None,
+@click.option("--record", "record_path", type=PathParam(dir_okay=False), default=None,
               help="Save frames, codes and packets to this HDF5 file.")
 @click.option("--waveforms", is_flag=True, help="Also record the emulator's drive waveforms (--device sim).")
 @click.option("--waveform-rate", default=8000.0, show_default=True, help="Waveform sample rate (Hz).")

@@ -135,3 +135,14 @@ def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str],
         for other_what, other in every[:i]:
             if _same_file(out, other):
                 raise click.UsageError(f"{other_what} and {what} would both write {out}")
+
+
+class PathParam(click.Path):
+    """:class:`click.Path` that refuses an empty string: ``-o ''`` ended in a TypeError
+    traceback (an empty output counted as none), and ``--record ''`` named the current
+    directory."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, (str, bytes)) and not value:
+            self.fail("empty path", param, ctx)
+        return super().convert(value, param, ctx)

@@ -238,6 +238,15 @@ def test_outputs_never_replace_a_device_pipe_or_socket(tmp_path, scene_file):
     assert not out.exists()
 
 
+def test_empty_paths_are_usage_errors(tmp_path, scene_file):
+    # `-o ''` counted as no output and ended in a TypeError traceback; `--exr ''` named the
+    # current directory. Every path option refuses an empty one (playback.cli_common.PathParam).
+    for extra in (["-o", ""], ["-o", str(tmp_path / "x.tact.h5"), "--exr", ""], ["--out-dir", ""]):
+        r = run("haptex-compile", SPEC, "--scene", str(scene_file), *extra)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and "empty path" in r.stderr, (extra, r.stderr)
+    assert not list(tmp_path.glob("*.tact.h5"))
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))
