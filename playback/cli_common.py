@@ -18,7 +18,7 @@ from typing import Any, Callable
 import click
 
 from playback.errors import HaptexError
-from playback.paths import check_replaceable
+from playback.paths import check_folders, check_replaceable
 
 LOG = logging.getLogger("haptex")
 EXIT_BAD_INPUT = 1
@@ -122,9 +122,12 @@ def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str],
     :func:`playback.paths.check_replaceable`); `direct` those opened and written in place (a
     raw packet sink may be a pipe); `inputs` paths. A typo such as
     ``haptex-compile h.npy -o h.npy`` replaced the input with the asset."""
-    for what, out in outputs:
+    for what, out in [*outputs, *direct]:
         try:
-            check_replaceable(out)
+            if (what, out) in outputs:
+                check_replaceable(out)
+            else:
+                check_folders(out)
         except HaptexError as exc:
             raise click.UsageError(f"{what} {exc}") from None
     every = [*outputs, *direct]

@@ -10,7 +10,8 @@ from playback.errors import InputError
 
 def check_replaceable(path: str | Path) -> None:
     """Raise :class:`InputError` (one line) if `path` exists and is neither a regular file nor a
-    symbolic link (a rename replaces the link, not its target).
+    symbolic link (a rename replaces the link, not its target), or if it cannot be created
+    because a file stands where a folder above it should be.
 
     Outputs are written to a temporary file and renamed over their name: over a device, a pipe
     or a socket that rename replaces the special file itself (as root, ``-o /dev/null``
@@ -18,11 +19,21 @@ def check_replaceable(path: str | Path) -> None:
     """
     try:
         mode = os.lstat(path).st_mode
-    except FileNotFoundError:
-        return
-    except OSError:  # unreadable: the write reports it
+    except OSError:  # not there (or unreadable: the write says why)
+        check_folders(path)
         return
     if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
         raise InputError(path, f"is {kind}, not a file: outputs are written to a temporary file and renamed"
                                " over their name, which would replace it")
+
+
+def check_folders(path: str | Path) -> None:
+    """Raise :class:`InputError` if the nearest existing folder above `path` is a file: the
+    write would fail there, after all the work (``-o a.tact.h5/x.tact.h5`` failed after the
+    tables with "[Errno 17] File exists")."""
+    for above in Path(path).absolute().parents:
+        if above.exists():
+            if not above.is_dir():
+                raise InputError(path, f"cannot be written: {above} is a file, not a folder")
+            return

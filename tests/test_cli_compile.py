@@ -247,6 +247,17 @@ def test_empty_paths_are_usage_errors(tmp_path, scene_file):
     assert not list(tmp_path.glob("*.tact.h5"))
 
 
+def test_an_output_under_a_file_is_refused_before_the_work(tmp_path, scene_file):
+    # `-o a.txt/x.tact.h5` (a file where a folder should be) failed only when the asset was
+    # written, after the tables, with "[Errno 17] File exists: 'a.txt'".
+    blocker = tmp_path / "a.txt"
+    blocker.write_text("a file")
+    for extra in (["-o", str(blocker / "x.tact.h5")], ["-o", str(tmp_path / "x.tact.h5"), "--md", str(blocker / "x.d")]):
+        r = run("haptex-compile", SPEC, "--scene", str(scene_file), *extra)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and "is a file, not a folder" in r.stderr, r.stderr
+    assert not (tmp_path / "x.tact.h5").exists()
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))
