@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -23,6 +24,8 @@ def _parse_light(ctx: click.Context, param: click.Parameter, value: str | None):
         raise click.BadParameter("expected SLANT,TILT in degrees, e.g. 30,45") from None
     if not (0 <= slant < 90):
         raise click.BadParameter("slant must be in [0, 90) degrees")
+    if not math.isfinite(tilt):  # (any finite tilt is an angle; inf failed only in the solver)
+        raise click.BadParameter("tilt must be a finite number of degrees")
     return slant, tilt
 
 

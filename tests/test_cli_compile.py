@@ -345,6 +345,8 @@ def test_usage_errors_exit_2(tmp_path):
 
 @pytest.mark.parametrize("tool, args, fragment", [
     ("haptex-compile", [SPEC, "--light", "95,30", "-o", "x.tact.h5"], "Invalid value for '--light': slant must be in [0, 90)"),
+    # (an infinite tilt was refused only by the solver, after the photo was read: exit 1)
+    ("haptex-compile", [SPEC, "--light", "30,inf", "-o", "x.tact.h5"], "Invalid value for '--light': tilt must be a finite number"),
     ("haptex-compile", [SPEC, "--pixel-size", "3furlong", "-o", "x.tact.h5"], "unknown length unit 'furlong'"),
     ("haptex-compile", [SPEC, "--bogus"], "No such option '--bogus'"),
     ("haptex-compile", [], "Missing argument 'INPUTS...'"),
