@@ -9,7 +9,8 @@ from pathlib import Path
 
 import click
 
-from playback.cli_common import EXIT_BAD_INPUT, PathParam, command, common_options, refuse_overwrites, show_progress
+from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
+                                 show_progress)
 from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex.compile")
@@ -75,7 +76,7 @@ def _one(job: dict) -> tuple[str, str | None]:
 @click.option("--out-dir", type=PathParam(file_okay=False), help="Folder for the assets of many inputs (NAME.tact.h5).")
 @click.option("--scene", "scene_path", type=PathParam(dir_okay=False), help="Scene TOML (default: HAPTEX 6 x 4 array, 10-200 mm/s, all directions).")
 @click.option("--pixel-size", callback=_parse_pixel, help="Pixel size, e.g. 10um or 0.01mm, at most 1 m (default: image metadata, else 20 um with a warning).")
-@click.option("--relief-um", type=click.FloatRange(min=0, min_open=True), help="Height scale of a photo's relief (see --relief-kind); default 10 um RMS with a warning.")
+@click.option("--relief-um", type=FiniteFloat(min=0, min_open=True, max=1e6), help="Height scale of a photo's relief (see --relief-kind); default 10 um RMS with a warning.")
 @click.option("--relief-kind", type=click.Choice(["rms", "pv"]), default="rms", show_default=True, help="What --relief-um means: RMS or peak-to-valley.")
 @click.option("--sfs", type=click.Choice(["default", "accurate", "tsai-shah"]), default="default", show_default=True,
               help="Shape-from-shading solver for photos: accurate is about 3x slower and more exact on clean images (it fits noise closer); tsai-shah is the paper's, for comparison.")
@@ -84,8 +85,8 @@ def _one(job: dict) -> tuple[str, str | None]:
 @click.option("--roughness", type=click.Choice(["auto", "none"]), default="auto", show_default=True, help="Fractal roughness of photos.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random choice (results are reproducible).")
 @click.option("--exr", "exr_path", type=PathParam(dir_okay=False), help="Also write height, a40, a320 maps as an EXR (one input).")
-@click.option("--exr-speed", type=click.FloatRange(min=0, min_open=True), default=80.0, show_default=True, help="Speed (mm/s) of the EXR amplitude maps.")
-@click.option("--exr-direction", type=float, default=0.0, show_default=True, help="Direction (deg) of the EXR amplitude maps.")
+@click.option("--exr-speed", type=FiniteFloat(min=0, min_open=True, max=2000), default=80.0, show_default=True, help="Speed (mm/s) of the EXR amplitude maps.")
+@click.option("--exr-direction", type=FiniteFloat(), default=0.0, show_default=True, help="Direction (deg) of the EXR amplitude maps.")
 @click.option("--md", "md_path", type=PathParam(dir_okay=False), help="Write a Make dependency file.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Inputs compiled in parallel.")
 @common_options

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from playback.cli_common import EXIT_BAD_INPUT, PathParam, command, common_options
+from playback.cli_common import EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options
 from playback.errors import InputError
 
 
@@ -213,8 +213,8 @@ def _record_summary(path: str) -> str:
 @click.argument("files", nargs=-1, required=True, type=PathParam(dir_okay=False))
 @click.option("--validate", is_flag=True, help="Check each file against schemas/asset.schema.json and the reader; exit 1 if any fails.")
 @click.option("--plot", "plot_path", type=PathParam(dir_okay=False), help="Write a PNG of the asset (or playback record); needs matplotlib.")
-@click.option("--speed", type=click.FloatRange(min=0, min_open=True), default=80.0, show_default=True, help="Speed (mm/s) of the plotted a40/a320 maps.")
-@click.option("--direction", type=float, default=0.0, show_default=True, help="Direction (deg) of the plotted maps.")
+@click.option("--speed", type=FiniteFloat(min=0, min_open=True, max=2000), default=80.0, show_default=True, help="Speed (mm/s) of the plotted a40/a320 maps.")
+@click.option("--direction", type=FiniteFloat(), default=0.0, show_default=True, help="Direction (deg) of the plotted maps.")
 @common_options
 def main(files, validate, plot_path, speed, direction):
     """Print a summary of tactile assets (FILES), validate them, or plot them."""

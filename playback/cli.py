@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from playback.cli_common import PathParam, command, common_options, refuse_overwrites
+from playback.cli_common import FiniteFloat, PathParam, command, common_options, refuse_overwrites
 
 LOG = logging.getLogger("haptex.play")
 
@@ -27,12 +27,13 @@ LOG = logging.getLogger("haptex.play")
 @click.option("--record", "record_path", type=PathParam(dir_okay=False), default=None,
               help="Save frames, codes and packets to this HDF5 file.")
 @click.option("--waveforms", is_flag=True, help="Also record the emulator's drive waveforms (--device sim).")
-@click.option("--waveform-rate", default=8000.0, show_default=True, help="Waveform sample rate (Hz).")
+@click.option("--waveform-rate", type=FiniteFloat(min=640.0, max=192000.0), default=8000.0, show_default=True,
+              help="Waveform sample rate (Hz; at least twice 320 Hz, at most 192 kHz).")
 @click.option("--fast", is_flag=True,
               help="Run unpaced on a virtual clock (no real-time waiting); not for --device usb or --live.")
-@click.option("--lead-ms", default=5.0, show_default=True,
+@click.option("--lead-ms", type=FiniteFloat(min=0.0, max=1000.0), default=5.0, show_default=True,
               help="Send each frame this long before its window starts (a frame is late if sent after that start).")
-@click.option("--prep-ms", default=2.0, show_default=True,
+@click.option("--prep-ms", type=FiniteFloat(min=0.0, max=1000.0), default=2.0, show_default=True,
               help="Wake up this long before each send to render (absorbs OS wake-up latency).")
 @click.option("--realtime/--no-realtime", default=True, show_default=True,
               help="Ask for real-time scheduling (SCHED_FIFO, else nice) while playing on the real clock; "
@@ -64,8 +65,6 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         raise click.UsageError("--waveforms needs --device sim (only the emulator synthesises waveforms)")
     if fast and (device == "usb" or live):
         raise click.UsageError("--fast is for dry runs: not with --device usb or --live")
-    if lead_ms < 0 or prep_ms < 0:
-        raise click.UsageError("--lead-ms and --prep-ms must be >= 0")
     if max_frames is not None and max_frames < 1:
         raise click.UsageError("--max-frames must be >= 1")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import inspect
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -149,3 +150,15 @@ class PathParam(click.Path):
         if isinstance(value, (str, bytes)) and not value:
             self.fail("empty path", param, ctx)
         return super().convert(value, param, ctx)
+
+
+class FiniteFloat(click.FloatRange):
+    """:class:`click.FloatRange` that refuses NaN and infinities, which pass a range's
+    comparisons (NaN) or sit at its open end: ``--lead-ms nan`` played with NaN schedules,
+    ``--waveform-rate 1e12`` asked for 1.8 TiB, ``--relief-um 1e308`` overflowed to NaN heights."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number

@@ -340,6 +340,16 @@ def parse_sweep(spec: str) -> dict[str, float]:
         raise InputError("--sweep", "speed must be >= 0 mm/s")
     if values["duration"] <= 0:
         raise InputError("--sweep", "duration must be > 0 s")
+    # Within the limits a trajectory's samples have (a 1e308 s sweep failed counting its frames
+    # with an OverflowError; a 1e308 mm/s one gave NaN positions, every amplitude zeroed).
+    if values["duration"] > MAX_TIME_S:
+        raise InputError("--sweep", f"duration must be at most {MAX_TIME_S:g} s")
+    if abs(values["phi"]) > MAX_ANGLE_DEG:
+        raise InputError("--sweep", f"phi must be within +-{MAX_ANGLE_DEG:g} degrees")
+    reach = max(abs(values["u"]), abs(values["v"])) + values["speed"] * values["duration"]
+    if reach > MAX_POSITION_MM:
+        raise InputError("--sweep", f"the sweep reaches {reach:.3g} mm from the origin (u, v and speed x duration):"
+                                    f" at most {MAX_POSITION_MM:g} mm")
     return values
 
 

@@ -354,6 +354,12 @@ def test_usage_errors_exit_2(tmp_path):
     ("haptex-inspect", ["a.tact.h5", "b.tact.h5", "--plot", "p.png"], "--plot takes one file"),
     ("haptex-play", ["a.tact.h5", "--fast"], "give exactly one of --sweep, --trajectory or --live"),
     ("haptex-play", ["a.tact.h5", "--max-frames", "two"], "Invalid value for '--max-frames'"),
+    # Non-finite or absurd numbers, which passed a plain float or a range's comparisons: NaN
+    # schedules, a 1.8 TiB waveform buffer (MemoryError traceback), NaN heights.
+    ("haptex-play", ["a.tact.h5", "--lead-ms", "nan"], "Invalid value for '--lead-ms': 'nan' is not a finite number"),
+    ("haptex-play", ["a.tact.h5", "--waveform-rate", "1e12"], "Invalid value for '--waveform-rate'"),
+    ("haptex-compile", [SPEC, "--relief-um", "1e308", "-o", "x.tact.h5"], "Invalid value for '--relief-um'"),
+    ("haptex-compile", [SPEC, "--exr-speed", "nan", "-o", "x.tact.h5"], "'nan' is not a finite number"),
 ])
 def test_usage_errors_are_one_line(tmp_path, monkeypatch, tool, args, fragment):
     # Usage errors from click's parsing and from the commands' own checks alike: one line that

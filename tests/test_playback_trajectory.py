@@ -93,6 +93,17 @@ def test_csv_samples_out_of_range_are_skipped(tmp_path):
     assert tr.state(0.1, 0.025).vu_mm_s == pytest.approx(50.0)
 
 
+def test_sweeps_out_of_range_are_refused():
+    # A 1e308 s sweep failed counting its frames (OverflowError); a 1e308 mm/s one gave NaN
+    # positions. Sweeps stay within the limits of a trajectory's samples.
+    assert parse_sweep("speed=80,duration=5,u=10")["u"] == 10.0
+    for spec, words in (("speed=80,duration=1e308", "duration must be at most"),
+                        ("speed=1e308,duration=0.25", "reaches"), ("speed=80,duration=1,u=1e308", "reaches"),
+                        ("speed=80,duration=1,phi=1e300", "phi must be within")):
+        with pytest.raises(InputError, match=words):
+            parse_sweep(spec)
+
+
 def test_csv_errors(tmp_path):
     p = tmp_path / "x.csv"
     p.write_text("time,x,y\n0,0,0\n")
