@@ -115,7 +115,7 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
                             light=light, kes_path=kes, roughness=roughness, seed=seed)
     outs = [output] if output is not None else [str(Path(out_dir) / f"{output_stem(s)}.tact.h5") for s in inputs]
     # Nothing this run reads is overwritten, and no output twice (a.png and a.jpg to --out-dir).
-    writes = [("-o" if output else f"the asset of {s}", o) for s, o in zip(inputs, outs)]
+    writes = [("-o" if output is not None else f"the asset of {s}", o) for s, o in zip(inputs, outs)]
     writes += [(what, path) for what, path in (("--exr", exr_path), ("--md", md_path)) if path]
     refuse_overwrites(writes, sorted({d for s in inputs for d in _dependencies(s, scene_path, kes, scene)}))
     jobs_list = [{"spec": s, "out": o, "scene": scene, "options": options, "exr": exr_path, "exr_speed": exr_speed,

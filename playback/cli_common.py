@@ -123,12 +123,11 @@ def refuse_overwrites(outputs: list[tuple[str, str]], inputs: list[str],
     :func:`playback.paths.check_replaceable`); `direct` those opened and written in place (a
     raw packet sink may be a pipe); `inputs` paths. A typo such as
     ``haptex-compile h.npy -o h.npy`` replaced the input with the asset."""
-    for what, out in [*outputs, *direct]:
+    checks = [(check_replaceable, what, out) for what, out in outputs]
+    checks += [(check_folders, what, out) for what, out in direct]
+    for check, what, out in checks:
         try:
-            if (what, out) in outputs:
-                check_replaceable(out)
-            else:
-                check_folders(out)
+            check(out)
         except HaptexError as exc:
             raise click.UsageError(f"{what} {exc}") from None
     every = [*outputs, *direct]
