@@ -49,7 +49,9 @@ def check_height_um(height_um: np.ndarray, source: str | os.PathLike | None) -> 
     if min(ny, nx) < MIN_SIDE_PX:
         raise InputError(source, f"height map too small ({nx} x {ny}; at least {MIN_SIDE_PX} x "
                                  f"{MIN_SIDE_PX} needed)")
-    with np.errstate(over="ignore"):  # longdouble beyond float64 becomes inf: counted below
+    # (longdouble beyond float64 becomes inf, and a signalling NaN, as in a damaged EXR's float32
+    # channel, warns "invalid value encountered in cast": both counted below)
+    with np.errstate(over="ignore", invalid="ignore"):
         heights = np.array(array, dtype=np.float64, order="C")
     bad = int(heights.size - np.count_nonzero(np.isfinite(heights)))
     if bad:
