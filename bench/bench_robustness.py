@@ -16,7 +16,6 @@ import argparse
 import logging
 import os
 import random
-import signal
 import struct
 import sys
 import tempfile
@@ -202,5 +201,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    signal.signal(signal.SIGINT, signal.default_int_handler)
     main()

@@ -24,7 +24,7 @@ SMOOTHING_HZ = 8.0  # width (Hz) over which each corner of a threshold curve is 
 # Evaluated thresholds never fall below this (µm): a steep end segment of a user's table,
 # continued far outside it, underflowed to 0 and made 0 / 0 weights outside the band. Within
 # the band, :class:`haptex_compile.colours.TwoColourModel` refuses curves below
-# ``PLAUSIBLE_MIN_UM`` instead (no skin feels a femtometre).
+# ``PLAUSIBLE_MIN_UM`` instead (1e-6 um, a picometre: no skin feels that).
 FLOOR_UM = 1e-12
 PLAUSIBLE_MIN_UM = 1e-6
 RAMP_CHUNK = 1024  # frequencies whose corner ramps are evaluated together
