@@ -150,9 +150,31 @@ def remove_plane(height_um: np.ndarray) -> np.ndarray:
     return height_um - (a @ coef).reshape(height_um.shape)
 
 
+# Options of photographs only: (SourceOptions field, flag, default).
+_PHOTO_ONLY = (("relief_um", "--relief-um", None), ("relief_kind", "--relief-kind", "rms"), ("sfs", "--sfs", "default"),
+               ("light", "--light", None), ("kes_path", "--kes", None), ("roughness", "--roughness", "auto"))
+
+
+def _warn_ignored(spec: str, kind: str, options: SourceOptions) -> None:
+    """One warning naming the options given that do not apply to this kind of input (they were
+    ignored silently: a Brownian spec with --pixel-size 10um kept the spec's 20 um)."""
+    ignored = [flag for field_name, flag, default in _PHOTO_ONLY
+               if kind != "image" and getattr(options, field_name) != default]
+    if kind in ("brownian", "heightmap") and options.seed != 0:
+        ignored.append("--seed")
+    if kind == "brownian" and options.pixel_size_um is not None:
+        ignored.append("--pixel-size")
+    if ignored:
+        names = {"brownian": "Brownian spec (its pixel= and seed= set those)", "heightmap": "height map",
+                 "kes": "Kawabata file"}
+        LOG.warning("%s: %s %s not apply to a %s: ignored", spec, ", ".join(ignored),
+                    "does" if len(ignored) == 1 else "do", names.get(kind, kind))
+
+
 def load_source(spec: str, options: SourceOptions) -> SourceResult:
     """Read or synthesise the surface named by `spec`."""
     kind = input_kind(spec)
+    _warn_ignored(spec, kind, options)
     if kind == "brownian":
         from haptex_compile.fractal import brownian_surface
 

@@ -155,3 +155,33 @@ def test_asset_round_trip_periodic(tmp_path):
     np.testing.assert_allclose(s2.t1_px, [50, 0]) and np.testing.assert_allclose(s2.t2_px, [0, 40])
     with h5py.File(path) as f5:
         assert json.loads(f5["report"].attrs["json"]) == {"note": "test"}
+
+
+def test_options_that_do_not_apply_to_the_input_are_warned_of(tmp_path, monkeypatch, caplog):
+    # A Brownian spec with --pixel-size 10um kept the spec's 20 um, and photo options given for
+    # a height map were dropped, all silently. One warning names them; the surface is as without.
+    import logging
+
+    from haptex_compile.sources import SourceOptions, load_source
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    spec = "brownian:H=0.5,size=32,pixel=20um,rms=5um,seed=2"
+    given = SourceOptions(pixel_size_um=10.0, relief_um=5.0, light=(30.0, 40.0), seed=3, sfs="accurate")
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        result = load_source(spec, given)
+    [said] = [r.getMessage() for r in caplog.records if "ignored" in r.getMessage()]
+    assert said == (f"{spec}: --relief-um, --sfs, --light, --seed, --pixel-size do not apply to a Brownian spec"
+                    " (its pixel= and seed= set those): ignored")
+    assert result.surface.pixel_size_um == 20.0
+    np.testing.assert_array_equal(result.surface.height_um, load_source(spec, SourceOptions()).surface.height_um)
+    caplog.clear()
+    path = tmp_path / "h.npy"
+    np.save(path, np.random.default_rng(0).standard_normal((16, 16)))
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        load_source(str(path), SourceOptions(pixel_size_um=20.0, light=(30.0, 40.0)))
+    assert [r.getMessage() for r in caplog.records if "ignored" in r.getMessage()] == [
+        f"{path}: --light does not apply to a height map: ignored"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        load_source(str(path), SourceOptions(pixel_size_um=20.0))
+    assert not [r for r in caplog.records if "ignored" in r.getMessage()]
