@@ -147,6 +147,7 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     if md_path and not failures:
         lines = [f"{out}: {' '.join(_dependencies(s, scene_path, kes, scene))}" for s, out in zip(inputs, outs)]
         check_replaceable(md_path)
+        Path(md_path).parent.mkdir(parents=True, exist_ok=True)  # as the assets' folders are
         tmp = f"{md_path}.tmp{os.getpid()}"
         Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
         os.replace(tmp, md_path)

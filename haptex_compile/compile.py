@@ -592,6 +592,7 @@ def export_exr(path: str | Path, surface: Surface, tables: Tables, speed_mm_s: f
     """Height plus a40/a320 maps (for one speed and direction) on the height map's pixel grid."""
     from haptex_compile.io_exr import write_exr
 
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # as the asset's folder is (write_asset)
     player = _as_player_tables(tables, frame_ms)
     ny, nx = surface.shape
     v, u = np.mgrid[0:ny, 0:nx] * surface.pixel_size_mm

@@ -258,6 +258,15 @@ def test_an_output_under_a_file_is_refused_before_the_work(tmp_path, scene_file)
     assert not (tmp_path / "x.tact.h5").exists()
 
 
+def test_exr_and_md_go_into_new_folders_as_the_asset_does(tmp_path, scene_file):
+    # -o made the asset's missing folders; --exr and --md failed after the work ("the output
+    # directory does not exist", "No such file or directory").
+    out, exr, md = tmp_path / "a" / "x.tact.h5", tmp_path / "b" / "c" / "x.exr", tmp_path / "d" / "x.d"
+    r = run("haptex-compile", SPEC, "--scene", str(scene_file), "-o", str(out), "--exr", str(exr), "--md", str(md))
+    assert r.returncode == 0, r.stderr
+    assert out.is_file() and exr.is_file() and md.read_text().startswith(f"{out}:")
+
+
 def test_output_is_byte_identical(tmp_path, scene_file, asset):
     again = tmp_path / "again.tact.h5"
     r = run("haptex-compile", SPEC, "-o", str(again), "--scene", str(scene_file))
