@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 import OpenEXR
 
@@ -35,7 +34,7 @@ from haptex_compile.io_exr import write_exr  # noqa: E402
 from haptex_compile.io_heightmaps import read_height_exr, read_height_npy  # noqa: E402
 from haptex_compile.io_images import read_image  # noqa: E402
 from playback import protocol  # noqa: E402
-from playback.asset import read_asset  # noqa: E402
+from playback.asset import read_asset, read_everything  # noqa: E402
 from playback.clock import VirtualClock  # noqa: E402
 from playback.device import DEFAULT_PROFILE, profile_from_dict  # noqa: E402
 from playback.errors import HaptexError  # noqa: E402
@@ -74,21 +73,6 @@ def _valid_files(folder: Path) -> dict[str, Path]:
     return files
 
 
-def _read_all_h5(path: Path) -> None:
-    with h5py.File(path, "r") as f:
-        for obj in [f, *(f[name] for name in _names(f))]:
-            for key in obj.attrs:
-                obj.attrs[key]
-            if isinstance(obj, h5py.Dataset):
-                obj[()]
-
-
-def _names(f: h5py.File) -> list[str]:
-    names: list[str] = []
-    f.visit(names.append)
-    return names
-
-
 def _exr_alone(path: Path) -> None:
     for channel in OpenEXR.File(str(path), separate_channels=True).channels().values():
         np.asarray(channel.pixels)
@@ -96,8 +80,8 @@ def _exr_alone(path: Path) -> None:
 
 # kind -> (our reader, the library alone)
 READERS = {
-    "tactile asset": (validate_asset, _read_all_h5),
-    "playback record": (record_summary, _read_all_h5),
+    "tactile asset": (validate_asset, read_everything),
+    "playback record": (record_summary, read_everything),
     "EXR height map": (read_height_exr, _exr_alone),
     "NPY height map": (read_height_npy, lambda p: np.load(p, allow_pickle=False)),
 }

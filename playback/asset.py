@@ -45,7 +45,7 @@ def corrupt_file_errors(path: str | Path, what: str) -> Iterator[None]:
         raise InputError(Path(path), f"cannot read {what} ({message})") from None
 
 
-def _read_everything(path: Path) -> None:
+def read_everything(path: str | Path) -> None:
     """Open `path` and read every attribute and dataset in it (errors are left to the caller)."""
     def read(obj: h5py.HLObject) -> None:
         for name in obj.attrs:
@@ -75,7 +75,7 @@ def crash_signal(path: str | Path) -> str | None:
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), 2)  # libhdf5's own messages
             faulthandler.disable()  # (pytest's, or PYTHONFAULTHANDLER's) the crash is expected
-            _read_everything(Path(path))
+            read_everything(path)
         except BaseException:  # noqa: BLE001 - reported by the caller's own read
             code = 1
         finally:
