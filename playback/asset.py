@@ -66,9 +66,23 @@ def crash_signal(path: str | Path) -> str | None:
     assets) and the process dies with it, before any error can be reported. Reading the file
     first in a child makes that one line; the child's own errors are ignored (the caller's read
     reports them). None where the platform cannot fork: the read is then not checked.
+
+    A tool probes a file before its own first read, and then calls :func:`read_asset`, which
+    probes too: the answer is kept per file (its device, inode, size and modification time), so
+    an unchanged file is read in a child once.
     """
     if not hasattr(os, "fork"):  # pragma: no cover - Windows
         return None
+    try:
+        st = os.stat(path)
+    except OSError:  # missing or unreadable: the caller's own read says so
+        return None
+    return _probe(str(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _probe(path: str, *identity: int) -> str | None:
+    """:func:`crash_signal` for the file `path` as it is (`identity`: its stat, the cache's key)."""
     pid = os.fork()
     if pid == 0:  # the child: read, then leave without running the parent's exit handlers
         code = 0
