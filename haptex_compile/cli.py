@@ -11,7 +11,6 @@ import click
 
 from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
                                  show_progress)
-from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -146,7 +145,6 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
             LOG.info("%s -> %s", spec, out)
     if md_path and not failures:
         lines = [f"{out}: {' '.join(_dependencies(s, scene_path, kes, scene))}" for s, out in zip(inputs, outs)]
-        check_replaceable(md_path)
         Path(md_path).parent.mkdir(parents=True, exist_ok=True)  # as the assets' folders are
         tmp = f"{md_path}.tmp{os.getpid()}"
         Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")

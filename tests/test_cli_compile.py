@@ -131,12 +131,23 @@ def test_compile_writes_a_valid_asset(asset):
     assert float(np.std(a.height_um)) == pytest.approx(5.0, rel=1e-3)
 
 
+def _corrupted(data: bytes, seed: int, folder: Path) -> Path:
+    """`data` with 1-40 random bytes overwritten (seeded), as ``corrupt<seed>.tact.h5`` in `folder`."""
+    import random
+
+    rng = random.Random(seed)
+    corrupt = bytearray(data)
+    for _ in range(rng.randint(1, 40)):
+        corrupt[rng.randrange(len(corrupt))] = rng.randrange(256)
+    path = folder / f"corrupt{seed}.tact.h5"
+    path.write_bytes(corrupt)
+    return path
+
+
 def test_corrupt_assets_are_invalid_in_one_line_each(tmp_path):
     # Random bytes overwritten in an asset: h5py raises TypeError or RuntimeError on some
     # (a damaged string type, B-tree or local heap), which the validator let through as a
     # traceback (seeds 5, 16 and 35 of these; the reader already caught them).
-    import random
-
     from asset_factory import write_test_asset
 
     from haptex_compile.asset_validate import validate_asset
@@ -144,12 +155,7 @@ def test_corrupt_assets_are_invalid_in_one_line_each(tmp_path):
     data = write_test_asset(tmp_path / "good.tact.h5").read_bytes()
     unreadable = 0
     for seed in range(40):
-        rng = random.Random(seed)
-        corrupt = bytearray(data)
-        for _ in range(rng.randint(1, 40)):
-            corrupt[rng.randrange(len(corrupt))] = rng.randrange(256)
-        path = tmp_path / f"corrupt{seed}.tact.h5"
-        path.write_bytes(corrupt)
+        path = _corrupted(data, seed, tmp_path)
         problems = validate_asset(path)
         assert all(p.startswith(str(path)) and "\n" not in p for p in problems)
         unreadable += any("cannot read (" in p for p in problems)
@@ -161,18 +167,11 @@ def test_assets_that_crash_libhdf5_are_one_line_each(tmp_path):
     # attribute's heap, and libhdf5 crashed (SIGSEGV) reading it: the validator, the summary
     # and the plot died with the process, no line said why. Each tool now reads the file first
     # in a forked child (playback.asset.crash_signal) and refuses it in one line, exit 1.
-    import random
-
     from asset_factory import write_test_asset
 
     data = write_test_asset(tmp_path / "good.tact.h5").read_bytes()
     for seed in (126, 299):
-        rng = random.Random(seed)
-        corrupt = bytearray(data)
-        for _ in range(rng.randint(1, 40)):
-            corrupt[rng.randrange(len(corrupt))] = rng.randrange(256)
-        path = tmp_path / f"corrupt{seed}.tact.h5"
-        path.write_bytes(corrupt)
+        path = _corrupted(data, seed, tmp_path)
         for args in (["--validate", str(path)], [str(path)], ["--plot", str(tmp_path / "p.png"), str(path)]):
             r = run("haptex-inspect", *args)
             assert r.returncode == 1, (seed, args, r.returncode, r.stderr[-500:])
