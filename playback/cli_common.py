@@ -161,3 +161,9 @@ class FiniteFloat(click.FloatRange):
         if not math.isfinite(number):
             self.fail(f"{value!r} is not a finite number", param, ctx)
         return number
+
+    def _describe_range(self) -> str:
+        # click's own says "x<=None" for a range with neither bound
+        if self.min is None and self.max is None:
+            return "finite"
+        return super()._describe_range()

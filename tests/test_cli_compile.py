@@ -383,6 +383,20 @@ def test_usage_errors_are_one_line(tmp_path, monkeypatch, tool, args, fragment):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("tool", sorted(TOOL_MODULES))
+def test_help_states_every_range(tool):
+    # Each numeric option's range is shown in its help; an unbounded (finite-only) one read
+    # "x<=None" (click's description of a range without bounds).
+    from click.testing import CliRunner
+
+    r = CliRunner().invoke(importlib.import_module(TOOL_MODULES[tool]).main, ["--help"], prog_name=tool,
+                           terminal_width=200)
+    assert r.exit_code == 0
+    assert "None" not in r.stdout
+    if tool != "haptex-play":
+        assert "0.0; finite]" in r.stdout  # --exr-direction, --direction
+
+
 @pytest.mark.parametrize("text, fragment", [
     ("[array]\nfoo = 1\n", "array"),
     ("[motion]\nspeeds_mm_s = [-5]\n", "motion.speeds_mm_s"),
