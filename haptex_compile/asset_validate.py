@@ -15,7 +15,8 @@ import numpy as np
 
 from haptex_compile.io_scene import load_schema
 from playback.asset import H5_READ_ERRORS, read_asset, refuse_crashing
-from playback.errors import AssetError
+from playback.errors import AssetError, shown_text
+from playback.record import RECORD_FORMAT
 
 
 def _json_value(value: Any) -> Any:
@@ -61,11 +62,14 @@ def validate_asset(path: str | Path) -> list[str]:
         return [str(exc)]
     except H5_READ_ERRORS as exc:  # corrupt files: h5py's errors as one line, as the reader does
         return [f"{path}: cannot read ({' '.join(str(exc).split()) or type(exc).__name__})"]
+    if description["attrs"].get("format") == RECORD_FORMAT:
+        return [f"{path}: a playback record (haptex-play --record), not a tactile asset: --validate checks"
+                " assets (haptex-inspect without --validate summarises a record)"]
     problems = []
     validator = jsonschema.Draft202012Validator(load_schema("asset.schema.json"))
     for err in sorted(validator.iter_errors(description), key=lambda e: list(e.absolute_path)):
         where = "/".join(str(p) for p in err.absolute_path if p not in ("groups", "datasets", "attrs")) or "/"
-        problems.append(f"{path}: {where}: {err.message}")
+        problems.append(f"{path}: {where}: {shown_text(err.message)}")
     if not problems:
         try:
             read_asset(path, load_surface=True)

@@ -9,7 +9,7 @@ import click
 import numpy as np
 
 from playback.cli_common import EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options
-from playback.errors import InputError
+from playback.errors import InputError, shown_text as _shown
 
 
 def _upper(tables) -> str:
@@ -28,8 +28,8 @@ def summary(path: str) -> str:
     t = asset.tables
     p = asset.perception
     lines = [
-        f"{path}: haptex tactile asset {asset.format_version} ({asset.generator})",
-        f"  source     {asset.source_kind}: {asset.source_name}",
+        f"{path}: haptex tactile asset {_shown(asset.format_version)} ({_shown(asset.generator)})",
+        f"  source     {_shown(asset.source_kind)}: {_shown(asset.source_name)}",
         f"  surface    {asset.surface_shape[1]} x {asset.surface_shape[0]} px at {asset.pixel_size_um:g} um "
         f"= {asset.surface_shape[1] * asset.pixel_size_um / 1000:.2f} x {asset.surface_shape[0] * asset.pixel_size_um / 1000:.2f} mm, "
         f"{'periodic' if asset.surface_periodic else 'not periodic'}",
@@ -49,7 +49,7 @@ def summary(path: str) -> str:
     lines += [
         f"  perception base {np.asarray(p['base_frequencies_hz']).tolist()} Hz, summation exponent {float(p['summation_exponent']):g}, "
         f"footprint sigma {float(p['footprint_sigma_mm']):g} mm, condition number {float(p.get('condition_number', float('nan'))):.1f}",
-        f"             thresholds: {p.get('threshold_provenance', '?')}",
+        f"             thresholds: {_shown(p.get('threshold_provenance', '?'))}",
         f"  tables     {t.shape[0]} directions x {t.shape[1]} speeds x {t.shape[2]} x {t.shape[3]} nodes, "
         f"grid {t.grid_spacing_mm:.3g} mm, {'wrapping' if t.periodic else 'mirrored at the edges'}",
         f"             directions {np.round(t.direction_deg, 2).tolist()} deg",
@@ -74,23 +74,23 @@ def summary(path: str) -> str:
         if shading.get("light_given"):
             how = "given"
         else:
-            how = "estimated" + (f" on {shading['light_estimated_on']}" if "light_estimated_on" in shading else "")
+            how = "estimated" + (f" on {_shown(shading['light_estimated_on'])}" if "light_estimated_on" in shading else "")
             how += ", UNRELIABLE" if shading.get("light_albedo_at_bound") else ""
-        lines.append(f"  shading    {shading.get('method', '?')}, light slant {float(shading['light_slant_deg']):.1f} deg, "
-                     f"tilt {float(shading['light_tilt_deg']):.1f} deg ({how}); solved on {shading.get('solved_on', '?')}, "
+        lines.append(f"  shading    {_shown(shading.get('method', '?'))}, light slant {float(shading['light_slant_deg']):.1f} deg, "
+                     f"tilt {float(shading['light_tilt_deg']):.1f} deg ({how}); solved on {_shown(shading.get('solved_on', '?'))}, "
                      f"weave visibility {float(shading.get('weave_visibility', float('nan'))):.3f}")
         # The shading's warnings, as the compile printed them (the estimated light's note first).
-        lines += [f"  warning    {w}" for w in shading.get("warnings", [])]
+        lines += [f"  warning    {_shown(w)}" for w in shading.get("warnings", [])]
     rough = report.get("roughness")
     if isinstance(rough, dict) and "warning" in rough:
-        lines.append(f"  warning    {rough['warning']}")
+        lines.append(f"  warning    {_shown(rough['warning'])}")
     if "relief_warning" in report:  # a height map's implausible relief (likely a unit error)
-        lines.append(f"  warning    {report['relief_warning']}")
+        lines.append(f"  warning    {_shown(report['relief_warning'])}")
     if "out_of_gamut_fraction" in report:
         lines.append(f"  gamut      {report['out_of_gamut_fraction']:.1%} of table values out of gamut (max measure {report['out_of_gamut_max']:.3g})")
     for key in ("pixel_size", "relief", "surface"):
         if key in report:
-            lines.append(f"  {key:<10} {report[key]}")
+            lines.append(f"  {key:<10} {_shown(report[key])}")
     return "\n".join(lines)
 
 
@@ -99,10 +99,11 @@ def is_playback_record(path: str) -> bool:
     import h5py
 
     from playback.asset import H5_READ_ERRORS
+    from playback.record import RECORD_FORMAT
 
     try:
         with h5py.File(path, "r") as f:
-            return f.attrs.get("format") == "haptex-playback-record"
+            return f.attrs.get("format") == RECORD_FORMAT
     except H5_READ_ERRORS:
         return False  # not HDF5, or corrupt: the asset reader gives the one-line error
 
@@ -158,11 +159,12 @@ def _record_summary(path: str) -> str:
         a320_max = float(np.max(a320)) if n else float("nan")
         waveforms = f["waveforms/volts"].shape if "waveforms/volts" in f else None
         rate = attr(f["waveforms"], "sample_rate_hz") if waveforms else None
-        mode, device, clock = attr(f, "mode", "?"), attr(f, "device", "?"), attr(f, "clock", "?")
+        mode, device, clock = (_shown(attr(f, k, "?")) for k in ("mode", "device", "clock"))
         scheduling = attr(f, "scheduling")
+        scheduling = None if scheduling is None else _shown(scheduling)
         skipped = attr(f, "frames_skipped")
-        stopped_by, zero_sent = attr(f, "stopped_by", "?"), attr(f, "zero_frame_sent")
-        asset, version = attr(f, "asset", "?"), attr(f, "format_version", "?")
+        stopped_by, zero_sent = _shown(attr(f, "stopped_by", "?")), attr(f, "zero_frame_sent")
+        asset, version = _shown(attr(f, "asset", "?")), _shown(attr(f, "format_version", "?"))
         err_max = attr(f, "tables_max_rel_error")
         shapes = {name: fr[name].shape for name in ("index", "late", "deadline_s", "sent_s", "render_us",
                                                     "latency_us", "clamped", "nonfinite", "flags", "a40", "a320",

@@ -28,14 +28,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from playback.errors import AssetError, HaptexError, InputError
+from playback.asset import FORMAT_NAME as ASSET_FORMAT
+from playback.errors import AssetError, HaptexError, InputError, shown_text
+from playback.record import RECORD_FORMAT
 
 if TYPE_CHECKING:  # matplotlib is optional
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-ASSET_FORMAT = "haptex-tactile-asset"
-RECORD_FORMAT = "haptex-playback-record"
 MAP_SAMPLES = 160  # points per side of the a40/a320 maps (the tables are far coarser)
 CELLS_SHOWN = 3  # lattice cells drawn per side on the source image
 _MISSING_MPL = "matplotlib is needed for --plot: pip install haptex[plot]"
@@ -81,7 +81,7 @@ def file_kind(path: str | Path) -> str:
         return "asset"
     if fmt == RECORD_FORMAT:
         return "record"
-    raise InputError(path, f"format {fmt!r} is neither {ASSET_FORMAT!r} nor {RECORD_FORMAT!r}")
+    raise InputError(path, f"format {shown_text(repr(fmt))} is neither {ASSET_FORMAT!r} nor {RECORD_FORMAT!r}")
 
 
 def lattice_cells_px(t1_px: np.ndarray, t2_px: np.ndarray, origin_px: np.ndarray, n: int = CELLS_SHOWN) -> np.ndarray:

@@ -22,7 +22,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from playback.errors import AssetError, HaptexError, InputError
+from playback.errors import AssetError, HaptexError, InputError, shown_text
 
 FORMAT_NAME = "haptex-tactile-asset"
 SUPPORTED_MAJOR = 1
@@ -336,7 +336,7 @@ def _read_open(path: Path, f: h5py.File, load_surface: bool) -> Asset:
     if isinstance(fmt, bytes):
         fmt = fmt.decode("utf-8", "replace")
     if fmt != FORMAT_NAME:
-        raise AssetError(path, f"not a haptex tactile asset (format attribute is {fmt!r}, expected {FORMAT_NAME!r})")
+        raise AssetError(path, f"not a haptex tactile asset (format attribute is {shown_text(repr(fmt))}, expected {FORMAT_NAME!r})")
     version = _str_attr(path, f, "format_version", "/")
     major_text = version.split(".")[0]
     if not major_text.isdigit() or int(major_text) != SUPPORTED_MAJOR:

@@ -3,6 +3,21 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# Longest text read from a file that a message or summary shows whole.
+SHOWN_CHARS = 300
+
+
+def shown_text(value: object, limit: int = SHOWN_CHARS) -> str:
+    """Text read from a file as a message or summary shows it: control characters escaped (a
+    newline or a terminal's escape sequence in an attribute split the line or recoloured the
+    terminal), and a text longer than `limit` cut in the middle, its length stated (the start
+    and the end are kept: the end of a validator's message says what was expected)."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(value))
+    if len(text) > limit:
+        head = limit * 2 // 3
+        text = f"{text[:head]} ... [{len(text)} characters] ... {text[len(text) - (limit - head):]}"
+    return text
+
 
 class HaptexError(Exception):
     """Base class: an expected failure with a message meant for the user (no traceback)."""

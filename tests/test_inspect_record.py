@@ -107,3 +107,40 @@ def test_malformed_records_are_one_line_each(record, tmp_path):
             lines = r.output.strip().splitlines()
             assert len(lines) == 1 and str(path) in lines[0], (name, r.output)
         assert not (tmp_path / f"{name}.png").exists()
+
+
+def test_text_from_files_is_shown_escaped_and_cut(record, tmp_path):
+    # Attributes are the file's words, not ours: a newline or a terminal escape in one split the
+    # summary's line or recoloured the terminal, and a 5000-character one was printed whole.
+    from haptex_compile.inspect_cli import main
+    from playback.errors import SHOWN_CHARS
+
+    device, stop = "sim\x1b[31m\nnext\rline", "x" * 2000 + "END"
+
+    def edit(f):
+        f.attrs["device"], f.attrs["stopped_by"] = device, stop
+
+    rec = _malformed(record, tmp_path / "texts.h5", edit)
+    asset = write_test_asset(tmp_path / "a.tact.h5")
+    with h5py.File(asset, "r+") as f:
+        f.attrs["source_name"] = "fab\nric\x1b[2J.jpg"
+    r = CliRunner().invoke(main, [str(rec), str(asset)])
+    assert r.exit_code == 0, r.output
+    assert "\x1b" not in r.output and "\r" not in r.output
+    assert "device sim\\x1b[31m\\nnext\\rline, " in r.output
+    assert ": fab\\nric\\x1b[2J.jpg\n" in r.output
+    [stop_line] = [line for line in r.output.splitlines() if line.startswith("  stop ")]
+    # Cut in the middle to SHOWN_CHARS, its length stated, its end kept.
+    assert f" ... [{len(stop)} characters] ... " in stop_line and "xEND; all-zero frame sent" in stop_line
+    assert stop_line.count("x") == SHOWN_CHARS - len("END")
+
+
+def test_validating_a_record_says_it_is_one(record):
+    # --validate checks assets: a record got eight lines of schema violations ("'generator' is a
+    # required property", ...), none saying what the file is.
+    from haptex_compile.inspect_cli import main
+
+    r = CliRunner().invoke(main, ["--validate", str(record)])
+    assert r.exit_code == 1
+    [line] = r.output.strip().splitlines()
+    assert str(record) in line and "a playback record" in line and "not a tactile asset" in line
