@@ -15,7 +15,7 @@ import numpy as np
 
 from haptex_compile.io_scene import load_schema
 from playback.asset import H5_READ_ERRORS, read_asset, refuse_crashing
-from playback.errors import AssetError, shown_text
+from playback.errors import AssetError, one_line, shown_text
 from playback.record import RECORD_FORMAT
 
 
@@ -61,7 +61,7 @@ def validate_asset(path: str | Path) -> list[str]:
     except AssetError as exc:  # a file that crashes libhdf5
         return [str(exc)]
     except H5_READ_ERRORS as exc:  # corrupt files: h5py's errors as one line, as the reader does
-        return [f"{path}: cannot read ({' '.join(str(exc).split()) or type(exc).__name__})"]
+        return [f"{path}: cannot read ({one_line(exc)})"]
     if description["attrs"].get("format") == RECORD_FORMAT:
         return [f"{path}: a playback record (haptex-play --record), not a tactile asset: --validate checks"
                 " assets (haptex-inspect without --validate summarises a record)"]

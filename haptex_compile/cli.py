@@ -52,7 +52,7 @@ def _dependencies(spec: str, scene_path: str | None, kes: str | None, scene) -> 
 
 def _one(job: dict) -> tuple[str, str | None]:
     """Compile one input (runs in a worker process for --jobs); returns (input, error line or None)."""
-    from playback.errors import HaptexError
+    from playback.errors import HaptexError, one_line, shown_text
     from haptex_compile.compile import compile_source
 
     try:
@@ -62,11 +62,12 @@ def _one(job: dict) -> tuple[str, str | None]:
     except (HaptexError, OSError, ValueError, MemoryError) as exc:
         if job["debug"]:
             raise
-        message = " ".join(str(exc).split()) or type(exc).__name__
+        message = one_line(exc)
         if isinstance(exc, MemoryError):
             message = f"out of memory ({message})"
-        # The message names the input (several may be compiled in one run).
-        return job["spec"], message if job["spec"] in message else f"{job['spec']}: {message}"
+        # The message names the input (several may be compiled in one run), as it shows it.
+        spec = shown_text(job["spec"], limit=None)
+        return job["spec"], message if spec in message else f"{spec}: {message}"
 
 
 @command()

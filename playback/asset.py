@@ -22,7 +22,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from playback.errors import AssetError, HaptexError, InputError, shown_text
+from playback.errors import AssetError, HaptexError, InputError, one_line, shown_text
 
 FORMAT_NAME = "haptex-tactile-asset"
 SUPPORTED_MAJOR = 1
@@ -32,17 +32,16 @@ H5_READ_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError)
 
 
 @contextlib.contextmanager
-def corrupt_file_errors(path: str | Path, what: str) -> Iterator[None]:
+def corrupt_file_errors(path: str | Path, what: str, error: type[InputError] = InputError) -> Iterator[None]:
     """Turn what h5py and numpy raise on a corrupt or malformed HDF5 file (a damaged B-tree,
     a dataset of an absurd or inconsistent shape) while reading `what` from `path` into one
-    :class:`InputError` line naming the file. Our own one-line errors pass through."""
+    `error` line naming the file. Our own one-line errors pass through."""
     try:
         yield
     except HaptexError:
         raise
     except (*H5_READ_ERRORS, IndexError, MemoryError) as exc:
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        raise InputError(Path(path), f"cannot read {what} ({message})") from None
+        raise error(Path(path), f"cannot read {what} ({one_line(exc)})") from None
 
 
 def read_everything(path: str | Path) -> None:
@@ -320,15 +319,9 @@ def read_asset(path: str | Path, *, load_surface: bool = False) -> Asset:
     if not is_hdf5:
         raise AssetError(path, "not an HDF5 file (expected a haptex tactile asset, .tact.h5)")
     refuse_crashing(path)
-    try:
+    with corrupt_file_errors(path, "asset", AssetError):  # truncated or corrupt files
         with h5py.File(path, "r") as f:
             return _read_open(path, f, load_surface)
-    except AssetError:
-        raise
-    except H5_READ_ERRORS as exc:
-        # Truncated or corrupt files surface here from h5py: keep it to one line.
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        raise AssetError(path, f"cannot read asset ({message})") from None
 
 
 def _read_open(path: Path, f: h5py.File, load_surface: bool) -> Asset:

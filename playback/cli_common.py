@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import click
 
-from playback.errors import HaptexError
+from playback.errors import HaptexError, one_line
 from playback.paths import check_folders, check_replaceable
 
 LOG = logging.getLogger("haptex")
@@ -92,8 +92,7 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
         except (HaptexError, OSError) as exc:
             if debug:
                 raise
-            message = " ".join(str(exc).split()) or type(exc).__name__
-            click.echo(f"{click.get_current_context().info_name}: error: {message}", err=True)
+            click.echo(f"{click.get_current_context().info_name}: error: {one_line(exc)}", err=True)
             sys.exit(EXIT_BAD_INPUT)
 
     return wrapper

@@ -7,16 +7,23 @@ from pathlib import Path
 SHOWN_CHARS = 300
 
 
-def shown_text(value: object, limit: int = SHOWN_CHARS) -> str:
+def shown_text(value: object, limit: int | None = SHOWN_CHARS) -> str:
     """Text read from a file as a message or summary shows it: control characters escaped (a
     newline or a terminal's escape sequence in an attribute split the line or recoloured the
-    terminal), and a text longer than `limit` cut in the middle, its length stated (the start
-    and the end are kept: the end of a validator's message says what was expected)."""
+    terminal), and a text longer than `limit` (None: no limit) cut in the middle, its length
+    stated (the start and the end are kept: the end of a validator's message says what was
+    expected)."""
     text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(value))
-    if len(text) > limit:
+    if limit is not None and len(text) > limit:
         head = limit * 2 // 3
         text = f"{text[:head]} ... [{len(text)} characters] ... {text[len(text) - (limit - head):]}"
     return text
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message as one line of printable text (its type's name if it has none):
+    libraries' messages (h5py's, the OS's) may span lines or quote a file's bytes."""
+    return shown_text(" ".join(str(exc).split()), limit=None) or type(exc).__name__
 
 
 class HaptexError(Exception):

@@ -397,6 +397,22 @@ def test_help_states_every_range(tool):
         assert "0.0; finite]" in r.stdout  # --exr-direction, --direction
 
 
+@pytest.mark.parametrize("tool, args", [
+    ("haptex-compile", ["no\x1b[31msuch.npy", "-o", "x.tact.h5"]),
+    ("haptex-play", ["no\x1b[31msuch.tact.h5", "--sweep", "speed=80"]),
+    ("haptex-inspect", ["no\x1b[31msuch.tact.h5"]),
+])
+def test_error_lines_show_control_characters_escaped(tmp_path, tool, args):
+    # A file name (or a library's message) with a terminal escape sequence in it: the error
+    # line shows it escaped, as the name it is (click dropped the sequence from piped output,
+    # naming a file that does not exist, and passed it to a terminal).
+    r = run(tool, *args, cwd=tmp_path)
+    assert r.returncode == 1
+    [line] = r.stderr.strip().splitlines()
+    assert line.startswith(f"{tool}: error: no\\x1b[31msuch.") and "\x1b" not in line
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("text, fragment", [
     ("[array]\nfoo = 1\n", "array"),
     ("[motion]\nspeeds_mm_s = [-5]\n", "motion.speeds_mm_s"),
