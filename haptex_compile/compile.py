@@ -558,6 +558,10 @@ def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, se
                     progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     model = model_for(scene)
     settings = settings_for(scene)
+    pixel_mm = source.surface.pixel_size_mm
+    if scene.grid_spacing_mm is not None and scene.grid_spacing_mm < pixel_mm:  # (initial_plan's floor)
+        LOG.warning("%s: the scene's grid_spacing_mm %g is below the surface's pixel size: table nodes are one"
+                    " pixel (%g mm) apart", source.name, scene.grid_spacing_mm, pixel_mm)
     t0 = time.perf_counter()
     tables, stats, plan = build_checked_tables(source.surface, model, settings, scene, seed=seed, progress=progress)
     t1 = time.perf_counter()

@@ -46,6 +46,12 @@ def test_scene_sections_are_optional_and_lists_are_used_as_given():
     "[render]\nbase_frequencies_hz = [320, 40]",
     "[render]\nsummation_exponent = nan",
     "[physics]\nx = 1",
+    # Numbers the schema let through and the compiler could not use: a speed range of 1e-300 mm/s
+    # (its geometric midpoints underflowed to 0: NaN check weights, "Probabilities contain NaN"
+    # after three RuntimeWarnings), contactors at 1e300 mm (overflow warnings, then an asset).
+    "[motion]\nspeed_range_mm_s = [1e-300, 1e-299]",
+    "[motion]\nspeeds_mm_s = [1e-300]",
+    "[array]\ncontactors_mm = [[1e300, 0.0]]",
 ])
 def test_bad_scenes_are_input_errors(text):
     with pytest.raises(InputError) as info:
@@ -185,3 +191,28 @@ def test_options_that_do_not_apply_to_the_input_are_warned_of(tmp_path, monkeypa
     with caplog.at_level(logging.WARNING, logger="haptex"):
         load_source(str(path), SourceOptions(pixel_size_um=20.0))
     assert not [r for r in caplog.records if "ignored" in r.getMessage()]
+
+
+def test_a_grid_spacing_below_the_pixel_is_warned_of(tmp_path, monkeypatch, caplog):
+    # The compiler spaces table nodes a pixel apart at least: a scene asking for less got that
+    # without a word.
+    import logging
+
+    from haptex_compile.compile import compile_surface
+    from haptex_compile.sources import SourceOptions, load_source
+    from playback.asset import read_asset
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    source = load_source("brownian:H=0.5,size=24,pixel=20um,rms=5um,seed=2", SourceOptions())
+    motion = "[motion]\nspeeds_mm_s = [50.0]\ndirections_deg = [0.0]\ntolerance = 0.5\n"
+    for spacing, warned in ((1e-6, True), (0.03, False)):
+        caplog.clear()
+        scene = parse_scene(f"{motion}[render]\ngrid_spacing_mm = {spacing}\n", "s.toml")
+        with caplog.at_level(logging.WARNING, logger="haptex"):
+            compile_surface(source, tmp_path / "a.tact.h5", scene)
+        said = [r.getMessage() for r in caplog.records if "grid_spacing_mm" in r.getMessage()]
+        assert said == ([f"{source.name}: the scene's grid_spacing_mm {spacing:g} is below the surface's pixel size:"
+                         " table nodes are one pixel (0.02 mm) apart"] if warned else [])
+        spacing_mm = read_asset(tmp_path / "a.tact.h5").tables.grid_spacing_mm
+        extent_mm = 23 * 0.02  # a non-periodic map's nodes span its first to its last pixel
+        assert spacing_mm == pytest.approx(extent_mm / round(extent_mm / max(spacing, 0.02)))
