@@ -446,7 +446,10 @@ def simulate_kes_smd(height_um: np.ndarray, pixel_size_um: float, direction: str
 
 
 def _smoothmin(a: float, b: float) -> float:
-    return (a ** -4 + b ** -4) ** -0.25
+    """``(a**-4 + b**-4) ** -0.25`` for positive `a`, `b` (a smooth minimum), from the smaller
+    of the two: the powers themselves overflowed for values below about 1e-77."""
+    lo, hi = min(a, b), max(a, b)
+    return lo * (1.0 + (lo / hi) ** 4) ** -0.25
 
 
 def _solve_log(measure, target: np.ndarray, x0: np.ndarray, *, rtol: float = 2e-3,

@@ -85,8 +85,10 @@ def _with(obj: dict, dotted: str, value) -> dict:
 BAD_CASES = [
     ("missing field", _without(GOOD, "smd_um"), "smd_um", "missing"),
     ("missing nested field", _without(GOOD, "smd_um.weft"), "smd_um.weft", "missing"),
-    ("negative SMD", _with(GOOD, "smd_um.warp", -1.0), "smd_um.warp", "> 0"),
-    ("zero SMD", _with(GOOD, "smd_um.weft", 0), "smd_um.weft", "> 0"),
+    ("negative SMD", _with(GOOD, "smd_um.warp", -1.0), "smd_um.warp", ">= 0.01"),
+    ("zero SMD", _with(GOOD, "smd_um.weft", 0), "smd_um.weft", ">= 0.01"),
+    # (1e-300 um passed the schema, and the calibration's smooth minimum overflowed: a traceback)
+    ("SMD below 0.01 um", _with(GOOD, "smd_um.weft", 1e-300), "smd_um.weft", ">= 0.01"),
     ("unknown weave", _with(GOOD, "weave", "tweed"), "weave", "tweed"),
     ("string for number", _with(GOOD, "ends_per_cm", "48"), "ends_per_cm", "number"),
     ("bool for number", _with(GOOD, "picks_per_cm", True), "picks_per_cm", "number"),
@@ -319,6 +321,16 @@ def test_calibrated_smd_within_5_percent(warp, weft, ends, picks, weave):
         # an independent, dense measurement (every column/row) agrees too
         dense = simulate_kes_smd(surface.height_um, surface.pixel_size_um, direction, n_traverses=10_000)
         assert dense == pytest.approx(target[direction], rel=0.05)
+
+
+def test_smooth_minimum_of_tiny_and_huge_thread_weights():
+    # (a^-4 + b^-4)^-1/4: its powers overflowed below about 1e-77 (OverflowError)
+    from haptex_compile.kes import _smoothmin
+
+    assert _smoothmin(3.0, 4.0) == pytest.approx((3.0**-4 + 4.0**-4) ** -0.25, rel=1e-15)
+    assert _smoothmin(2.0, 2.0) == pytest.approx(2.0 * 2.0**-0.25, rel=1e-15)
+    assert _smoothmin(1e-300, 1e-300) == pytest.approx(1e-300 * 2.0**-0.25, rel=1e-15)
+    assert _smoothmin(1e-300, 1e300) == 1e-300 and _smoothmin(1e300, 5.0) == 5.0
 
 
 def test_first_guess_without_probe_misses_at_large_smd():
