@@ -33,7 +33,7 @@ from scipy import sparse
 from haptex_compile.colours import TwoColourModel
 from haptex_compile.frame_analysis import FOOTPRINT_TRUNCATION, RESOLVED_STOP, AnalysisSettings, resolution_weight
 from haptex_compile.line_sampling import LineSampler, fast_len
-from haptex_compile.surface import _bspline_weights, refuse_out_of_scale
+from haptex_compile.surface import _bspline_weights, count_text, refuse_out_of_scale
 
 KERNEL_CUT = 1e-4  # relative kernel magnitude below which frequencies are dropped
 LINE_SETTLE_MS = 100.0  # line length beyond the window, in time at the speed, for the filter to settle
@@ -148,7 +148,7 @@ def direction_powers(
     xi_cut = kernel_cut_cyc_per_mm(sigma)
     pad = FOOTPRINT_TRUNCATION * sigma + 2 * px  # the footprint's support (the cropped kernel's ringing is below 1e-4)
     frame, n_rows, n_cols = sampler.frame(direction_deg, u, v, line_margin_mm(speeds.max(), settings, px), pad)
-    _check_size(4 * n_rows * n_cols, sampler, f"its lines ({n_rows} x {n_cols} samples)",
+    _check_size(4 * n_rows * n_cols, sampler, f"its lines ({count_text(n_rows)} x {count_text(n_cols)} samples)",
                 "give it coarser pixels (resample it) or check its pixel size")
     lines = sampler.sample(frame, n_rows, n_cols)
     jf, kf = frame.index_coords(u, v)

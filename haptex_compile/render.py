@@ -25,7 +25,7 @@ from haptex_compile.frame_analysis import (
     frame_window,
     stretch_channel_power,
 )
-from haptex_compile.surface import Surface, refuse_out_of_scale, sample_height
+from haptex_compile.surface import Surface, count_text, refuse_out_of_scale, sample_height
 
 Trajectory = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 _VELOCITY_DT_S = 1e-3
@@ -99,7 +99,7 @@ def point_intensities(
             advice = (f"the frame's window spans {2 * half_s:.4g} s at that speed (the footprint's passage); raise"
                       " the scene's slowest speed")
         refuse_out_of_scale(surface, n_bytes, MAX_STROKE_BYTES, "the reference renderer",
-                            f"the heights of {b.size} x {n_fine} path samples", f"per frame (at {speed:g} mm/s)", advice)
+                            f"the heights of {b.size} x {count_text(n_fine)} path samples", f"per frame (at {speed:g} mm/s)", advice)
     offsets = (np.arange(n_fine) - (n_fine - 1) / 2.0) * fine_dt
     window = frame_window(offsets[::decimation], settings.frame_ms, sigma_t)
     u, v = path(t_centre_s + offsets)

@@ -83,6 +83,11 @@ def output_stem(spec: str) -> str:
     return Path(name).stem
 
 
+# Largest RMS relief of a Brownian spec (1 m, as --relief-um's), and largest height of a
+# height map after levelling.
+MAX_RMS_UM = MAX_HEIGHT_UM = 1e6
+
+
 def parse_brownian_spec(spec: str) -> dict[str, Any]:
     """Parse ``brownian:H=0.7,size=1024,pixel=10um,rms=5um,seed=3`` into keyword arguments.
 
@@ -97,6 +102,8 @@ def parse_brownian_spec(spec: str) -> dict[str, Any]:
         key, value = (s.strip() for s in part.split("=", 1))
         if key not in {"H", "size", "pixel", "rms", "seed", "method", "periodic"}:
             raise InputError(spec, f"unknown key {key!r} (use H, size, pixel, rms, seed, method, periodic)")
+        if key in values:  # (the last one was used)
+            raise InputError(spec, f"{key} is given twice")
         values[key] = value
     if "H" not in values:
         raise InputError(spec, "H is required, e.g. brownian:H=0.7")
@@ -117,6 +124,8 @@ def parse_brownian_spec(spec: str) -> dict[str, Any]:
     nx, ny = (value("size", int, side) for side in sides)
     pixel = value("pixel", parse_pixel_size_um, default="20um")
     rms = value("rms", parse_length_um, default="5um")
+    if rms > MAX_RMS_UM:  # (1e300 um overflowed the float32 heights: an asset of inf and NaN)
+        raise InputError(spec, f"rms {rms:g} um is above 1 m: check its unit")
     seed = value("seed", int, default="0")
     periodic_text = values.get("periodic", "false").lower()
     if periodic_text not in {"true", "false", "1", "0", "yes", "no"}:
@@ -193,9 +202,15 @@ def load_source(spec: str, options: SourceOptions) -> SourceResult:
 
         h = read_height_npy(spec) if spec.lower().endswith(".npy") else read_height_exr(spec)
         px, note = _pixel_size(options, spec)
-        h = remove_plane(np.asarray(h, dtype=float))
+        with np.errstate(over="ignore", invalid="ignore"):  # (absurd heights are refused just below)
+            h = remove_plane(np.asarray(h, dtype=float))
+            peak = float(np.max(np.abs(h)))
+            rms = float(np.sqrt(np.mean(h * h)))
+        if not peak <= MAX_HEIGHT_UM:
+            # (1e30 um gave all-zero tables from overflowed powers, 1e300 an asset of infinite heights)
+            raise InputError(spec, f"heights reach {peak:.3g} um after levelling, above 1 m: the file's heights"
+                                   " must be in micrometres")
         report = {"pixel_size": f"{px:g} um {note}", "plane_removed": True}
-        rms = float(np.sqrt(np.mean(h * h)))
         low, high = PLAUSIBLE_RMS_UM
         if not low <= rms <= high:
             report["relief_warning"] = (f"RMS height {rms:.3g} um after levelling, outside {low:g}-{high:g} um:"

@@ -94,6 +94,12 @@ class Surface:
         return np.zeros(2) if self.cell_origin_px is None else np.asarray(self.cell_origin_px, float)
 
 
+def count_text(n: float) -> str:
+    """A count or size for a message: whole below a billion, else 3 significant digits (a
+    surface of 1e-300 um pixels gave 300-digit numbers)."""
+    return f"{int(n)}" if n < 1e9 else f"{n:.3g}"
+
+
 def refuse_out_of_scale(surface: Surface, n_bytes: int, limit_bytes: int, stage: str, what: str, per: str,
                         advice: str) -> None:
     """Raise :class:`InputError` when an array of `n_bytes` that `stage` would make for
@@ -106,8 +112,13 @@ def refuse_out_of_scale(surface: Surface, n_bytes: int, limit_bytes: int, stage:
         px_mm = surface.pixel_size_mm
         raise InputError(
             None, f"the surface ({cols} x {rows} px of {px_mm * 1000:.4g} um, {cols * px_mm:.4g} x {rows * px_mm:.4g} mm)"
-            f" is out of scale for {stage}: {what} would take {n_bytes / 2 ** 30:.1f} GiB, above"
+            f" is out of scale for {stage}: {what} would take {_gib(n_bytes)} GiB, above"
             f" {limit_bytes / 2 ** 30:.3g} GiB {per}; {advice}")
+
+
+def _gib(n_bytes: float) -> str:
+    gib = n_bytes / 2 ** 30
+    return f"{gib:.1f}" if gib < 1e6 else f"{gib:.3g}"
 
 
 def periodic_surface_from_tile(height_um: np.ndarray, pixel_size_um: float) -> Surface:

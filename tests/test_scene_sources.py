@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 
 import h5py
 import numpy as np
@@ -91,9 +92,46 @@ def test_brownian_spec():
     # A value that does not parse is named with its key (Python's own messages named none).
     for bad, message in (("brownian:H=x", "H='x' is not a number"), ("brownian:H=0.5,seed=1e3", "seed='1e3' is not a whole number"),
                          ("brownian:H=0.5,size=64xq", "size='64xq' is not a whole number"),
-                         ("brownian:H=0.5,rms=0um", "rms: length '0um' must be finite and positive")):
+                         ("brownian:H=0.5,rms=0um", "rms: length '0um' must be finite and positive"),
+                         # (1e300 um overflowed the float32 heights: RuntimeWarnings, then an asset)
+                         ("brownian:H=0.5,rms=1e300um", "rms 1e+300 um is above 1 m: check its unit"),
+                         # (the last one was used, without a word)
+                         ("brownian:H=0.5,size=64,size=32", "size is given twice")):
         with pytest.raises(InputError, match=re.escape(message)):
             parse_brownian_spec(bad)
+    assert parse_brownian_spec("brownian:H=0.5,rms=1m")["rms_um"] == 1e6
+
+
+@pytest.mark.parametrize("scale_um", [1e7, 1e30, 1e300])
+def test_a_height_map_beyond_a_metre_is_refused(tmp_path, scale_um):
+    # Heights in the wrong unit by far: 1e30 um gave an asset of all-zero tables (overflowed
+    # powers), 1e300 one of infinite heights, both after RuntimeWarnings.
+    from haptex_compile.sources import SourceOptions, load_source
+
+    path = tmp_path / "h.npy"
+    h = np.random.default_rng(0).standard_normal((16, 16))
+    np.save(path, h * scale_um)
+    peak = np.max(np.abs(remove_plane(h))) * scale_um
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError) as info:
+            load_source(str(path), SourceOptions(pixel_size_um=20.0))
+    assert str(info.value) == (f"{path}: heights reach {peak:.3g} um after levelling, above 1 m: the file's heights"
+                               " must be in micrometres")
+
+
+def test_out_of_scale_messages_keep_numbers_short():
+    # Pixels of 1e-300 um were refused with 300-digit sample counts and sizes.
+    from haptex_compile.sources import SourceOptions, load_source
+    from haptex_compile.surface import count_text
+    from haptex_compile.compile import compile_surface
+
+    assert count_text(126) == "126" and count_text(104857600) == "104857600" and count_text(1.04e305) == "1.04e+305"
+    source = load_source("brownian:H=0.5,size=16,pixel=1e-300um,rms=5um", SourceOptions())
+    with pytest.raises(InputError) as info:
+        compile_surface(source, "never-written.tact.h5", default_scene())
+    assert "is out of scale for the tables" in str(info.value)
+    assert max(len(word) for word in re.findall(r"[0-9.e+]+", str(info.value))) <= 12
 
 
 def test_input_kinds_and_stems():
