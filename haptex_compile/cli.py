@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
-                                 show_progress)
+                                 show_progress, warn_ignored_options)
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -106,6 +106,8 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
         raise click.UsageError("give exactly one of -o/--output or --out-dir")
     if output is not None and len(inputs) != 1:
         raise click.UsageError("-o/--output takes one input; use --out-dir for several")
+    if exr_path is None:
+        warn_ignored_options(["exr_speed", "exr_direction"], "--exr")
     if exr_path is not None and len(inputs) != 1:
         raise click.UsageError("--exr takes one input")
     for spec in inputs:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from playback.cli_common import EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options
+from playback.cli_common import EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, warn_ignored_options
 from playback.errors import InputError, shown_text as _shown
 
 
@@ -220,6 +220,8 @@ def _record_summary(path: str) -> str:
 @common_options
 def main(files, validate, plot_path, speed, direction):
     """Print a summary of tactile assets (FILES), validate them, or plot them."""
+    if not plot_path:
+        warn_ignored_options(["speed", "direction"], "--plot")
     if validate:
         from haptex_compile.asset_validate import validate_asset
 

@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from playback.cli_common import FiniteFloat, PathParam, command, common_options, refuse_overwrites
+from playback.cli_common import FiniteFloat, PathParam, command, common_options, refuse_overwrites, warn_ignored_options
 
 LOG = logging.getLogger("haptex.play")
 
@@ -63,6 +63,10 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         raise click.UsageError("give exactly one of --sweep, --trajectory or --live")
     if waveforms and device != "sim":
         raise click.UsageError("--waveforms needs --device sim (only the emulator synthesises waveforms)")
+    if waveforms and record_path is None:  # (they were synthesised for nothing)
+        raise click.UsageError("--waveforms needs --record (the waveforms are saved in the record)")
+    if not waveforms:
+        warn_ignored_options(["waveform_rate"], "--waveforms")
     if fast and (device == "usb" or live):
         raise click.UsageError("--fast is for dry runs: not with --device usb or --live")
     if max_frames is not None and max_frames < 1:

@@ -98,6 +98,17 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+def warn_ignored_options(names: list[str], needs: str) -> None:
+    """Warn, in one line, of the options among `names` (parameter names) given on the command
+    line that apply only with the option `needs`, which was not given: they were ignored
+    without a word (``--exr-speed 40`` without ``--exr``)."""
+    ctx = click.get_current_context()
+    given = [param.opts[0] for param in ctx.command.params
+             if param.name in names and ctx.get_parameter_source(param.name) == click.core.ParameterSource.COMMANDLINE]
+    if given:
+        LOG.warning("%s %s only with %s: ignored", ", ".join(given), "applies" if len(given) == 1 else "apply", needs)
+
+
 def show_progress() -> bool:
     """Progress bars only when stderr is an interactive terminal."""
     return sys.stderr.isatty()

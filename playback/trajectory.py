@@ -319,6 +319,7 @@ def parse_sweep(spec: str) -> dict[str, float]:
     """Parse ``speed=80,direction=0,duration=5[,u=0,v=0,phi=0]`` (mm/s, degrees, s, mm)."""
     allowed = {"speed", "direction", "duration", "u", "v", "phi"}
     values: dict[str, float] = {"direction": 0.0, "u": 0.0, "v": 0.0, "phi": 0.0}
+    seen: set[str] = set()
     for part in spec.split(","):
         if not part.strip():
             continue
@@ -327,6 +328,9 @@ def parse_sweep(spec: str) -> dict[str, float]:
         key, text = (x.strip().lower() for x in part.split("=", 1))
         if key not in allowed:
             raise InputError("--sweep", f"unknown key {key!r} (use {', '.join(sorted(allowed))})")
+        if key in seen:  # (the last one was used)
+            raise InputError("--sweep", f"{key} is given twice")
+        seen.add(key)
         try:
             values[key] = float(text)
         except ValueError:

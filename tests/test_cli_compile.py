@@ -361,6 +361,8 @@ def test_usage_errors_exit_2(tmp_path):
     ("haptex-compile", [SPEC], "give exactly one of -o/--output or --out-dir"),
     ("haptex-inspect", ["a.tact.h5", "b.tact.h5", "--plot", "p.png"], "--plot takes one file"),
     ("haptex-play", ["a.tact.h5", "--fast"], "give exactly one of --sweep, --trajectory or --live"),
+    # (the waveforms were synthesised and dropped)
+    ("haptex-play", ["a.tact.h5", "--sweep", "speed=80,duration=1", "--waveforms"], "--waveforms needs --record"),
     ("haptex-play", ["a.tact.h5", "--max-frames", "two"], "Invalid value for '--max-frames'"),
     # Non-finite or absurd numbers, which passed a plain float or a range's comparisons: NaN
     # schedules, a 1.8 TiB waveform buffer (MemoryError traceback), NaN heights.
@@ -411,6 +413,26 @@ def test_error_lines_show_control_characters_escaped(tmp_path, tool, args):
     [line] = r.stderr.strip().splitlines()
     assert line.startswith(f"{tool}: error: no\\x1b[31msuch.") and "\x1b" not in line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_options_that_apply_only_with_another_are_warned_of(asset, scene_file, tmp_path):
+    # --exr-speed without --exr, --waveform-rate without --waveforms, --speed and --direction
+    # without --plot were ignored without a word; given with it, no warning.
+    cases = [
+        ("haptex-compile", [SPEC, "-o", str(tmp_path / "x.tact.h5"), "--scene", str(scene_file), "--exr-speed", "40",
+                            "--exr-direction", "10"], "--exr-speed, --exr-direction apply only with --exr: ignored"),
+        ("haptex-play", [str(asset), "--sweep", "speed=80,duration=0.1", "--fast", "--waveform-rate", "1000"],
+         "--waveform-rate applies only with --waveforms: ignored"),
+        ("haptex-inspect", [str(asset), "--speed", "30", "--direction", "4"],
+         "--speed, --direction apply only with --plot: ignored"),
+    ]
+    for tool, args, warning in cases:
+        r = run(tool, *args)
+        assert r.returncode == 0, r.stderr
+        assert f"haptex: WARNING: {warning}" in r.stderr.splitlines()
+    r = run("haptex-play", str(asset), "--sweep", "speed=80,duration=0.1", "--fast", "--waveforms", "--waveform-rate",
+            "1000", "--record", str(tmp_path / "r.h5"))
+    assert r.returncode == 0 and "WARNING" not in r.stderr
 
 
 @pytest.mark.parametrize("text, fragment", [

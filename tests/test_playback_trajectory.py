@@ -48,6 +48,9 @@ def test_sweep_state():
     for bad in ("speed=80", "speed=x,duration=1", "speed=1,duration=0", "speed=1,duration=1,foo=2", "speed"):
         with pytest.raises(InputError):
             parse_sweep(bad)
+    # A key given twice: the last one was used, without a word.
+    with pytest.raises(InputError, match="speed is given twice"):
+        parse_sweep("speed=80,duration=1,Speed=90")
 
 
 def test_csv_bad_samples(tmp_path, caplog, monkeypatch):
