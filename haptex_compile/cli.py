@@ -108,6 +108,10 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
         raise click.UsageError("-o/--output takes one input; use --out-dir for several")
     if exr_path is None:
         warn_ignored_options(["exr_speed", "exr_direction"], "--exr")
+    if relief_um is None:
+        warn_ignored_options(["relief_kind"], "--relief-um")
+    elif kes is not None:  # (--relief-um was used and the Kawabata file's SMD ignored)
+        raise click.UsageError("--relief-um and --kes both set a photo's height scale: give one")
     if exr_path is not None and len(inputs) != 1:
         raise click.UsageError("--exr takes one input")
     for spec in inputs:

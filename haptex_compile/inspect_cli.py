@@ -220,6 +220,8 @@ def _record_summary(path: str) -> str:
 @common_options
 def main(files, validate, plot_path, speed, direction):
     """Print a summary of tactile assets (FILES), validate them, or plot them."""
+    if validate and plot_path:  # (the plot was not made)
+        raise click.UsageError("give one of --validate or --plot")
     if not plot_path:
         warn_ignored_options(["speed", "direction"], "--plot")
     if validate:

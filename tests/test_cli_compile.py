@@ -361,6 +361,10 @@ def test_usage_errors_exit_2(tmp_path):
     ("haptex-compile", [SPEC], "give exactly one of -o/--output or --out-dir"),
     ("haptex-inspect", ["a.tact.h5", "b.tact.h5", "--plot", "p.png"], "--plot takes one file"),
     ("haptex-play", ["a.tact.h5", "--fast"], "give exactly one of --sweep, --trajectory or --live"),
+    # (the plot was not made; --kes was ignored for --relief-um)
+    ("haptex-inspect", ["a.tact.h5", "--validate", "--plot", "p.png"], "give one of --validate or --plot"),
+    ("haptex-compile", ["x.jpg", "-o", "x.tact.h5", "--relief-um", "5", "--kes", "k.kes.json"],
+     "--relief-um and --kes both set a photo's height scale: give one"),
     # (the waveforms were synthesised and dropped)
     ("haptex-play", ["a.tact.h5", "--sweep", "speed=80,duration=1", "--waveforms"], "--waveforms needs --record"),
     ("haptex-play", ["a.tact.h5", "--max-frames", "two"], "Invalid value for '--max-frames'"),
@@ -420,16 +424,19 @@ def test_options_that_apply_only_with_another_are_warned_of(asset, scene_file, t
     # without --plot were ignored without a word; given with it, no warning.
     cases = [
         ("haptex-compile", [SPEC, "-o", str(tmp_path / "x.tact.h5"), "--scene", str(scene_file), "--exr-speed", "40",
-                            "--exr-direction", "10"], "--exr-speed, --exr-direction apply only with --exr: ignored"),
+                            "--exr-direction", "10", "--relief-kind", "pv"],
+         ["--exr-speed, --exr-direction apply only with --exr: ignored",
+          "--relief-kind applies only with --relief-um: ignored"]),
         ("haptex-play", [str(asset), "--sweep", "speed=80,duration=0.1", "--fast", "--waveform-rate", "1000"],
-         "--waveform-rate applies only with --waveforms: ignored"),
+         ["--waveform-rate applies only with --waveforms: ignored"]),
         ("haptex-inspect", [str(asset), "--speed", "30", "--direction", "4"],
-         "--speed, --direction apply only with --plot: ignored"),
+         ["--speed, --direction apply only with --plot: ignored"]),
     ]
-    for tool, args, warning in cases:
+    for tool, args, warnings in cases:
         r = run(tool, *args)
         assert r.returncode == 0, r.stderr
-        assert f"haptex: WARNING: {warning}" in r.stderr.splitlines()
+        for warning in warnings:
+            assert f"haptex: WARNING: {warning}" in r.stderr.splitlines()
     r = run("haptex-play", str(asset), "--sweep", "speed=80,duration=0.1", "--fast", "--waveforms", "--waveform-rate",
             "1000", "--record", str(tmp_path / "r.h5"))
     assert r.returncode == 0 and "WARNING" not in r.stderr
