@@ -11,6 +11,7 @@ import jsonschema
 
 from haptex_compile.errors import InputError
 from haptex_compile.scene import Scene, scene_from_dict
+from playback.text_files import read_text
 
 
 @lru_cache(maxsize=None)
@@ -43,8 +44,4 @@ def parse_scene(text: str, source: str | Path, base_dir: str | None = None) -> S
 def read_scene(path: str | Path) -> Scene:
     """Read a scene TOML file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot read scene ({exc.__class__.__name__})") from None
-    return parse_scene(text, path, base_dir=str(path.parent))
+    return parse_scene(read_text(path, "scene file"), path, base_dir=str(path.parent))

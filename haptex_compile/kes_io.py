@@ -29,6 +29,7 @@ from typing import Any
 import jsonschema
 
 from haptex_compile.errors import InputError
+from playback.text_files import read_text
 
 __all__ = ["KesData", "parse_kes", "read_kes", "kes_schema", "WEAVES", "CSV_COLUMNS"]
 
@@ -184,17 +185,6 @@ def parse_kes(obj: dict, source: str) -> KesData:
     )
 
 
-def _read_text(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except UnicodeDecodeError as exc:
-        raise InputError(path, f"not UTF-8 text (byte {exc.start})") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
-
-
 def _csv_cell(text: str, column: str, source: str) -> Any:
     text = text.strip()
     if column in _CSV_TEXT:
@@ -213,7 +203,7 @@ def _csv_cell(text: str, column: str, source: str) -> Any:
 
 
 def _read_csv(path: Path) -> list[KesData]:
-    text = _read_text(path)
+    text = read_text(path, "Kawabata file")
     first = text.split("\n", 1)[0]
     delimiter = ";" if first.count(";") > first.count(",") else ","
     reader = csv.reader(io.StringIO(text), delimiter=delimiter)
@@ -274,7 +264,7 @@ def read_kes(path: str | Path) -> KesData | list[KesData]:
         return _read_csv(path)
     if suffix != ".json":
         raise InputError(path, "unknown KES file type (expected .kes.json or .kes.csv)")
-    text = _read_text(path)
+    text = read_text(path, "Kawabata file")
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from playback.errors import InputError
+from playback.text_files import read_text
 
 DEFAULT_PROFILE_PATH = Path(__file__).resolve().parents[1] / "samples" / "devices" / "haptex24.toml"
 
@@ -238,13 +239,9 @@ def load_profile(path: str | Path | None = None) -> DeviceProfile:
     if path is None:
         return profile_from_dict(DEFAULT_PROFILE, "built-in haptex24 profile")
     path = Path(path)
+    text = read_text(path, "device profile")
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise InputError(path, "no such device profile") from None
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"not valid TOML ({exc})") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "not a text TOML file") from None
     return profile_from_dict(doc, str(path))

@@ -34,6 +34,7 @@ from typing import IO, Callable, Iterable
 import numpy as np
 
 from playback.errors import InputError
+from playback.text_files import unreadable
 
 LOG = logging.getLogger("haptex.play.trajectory")
 COLUMNS = ("t_s", "u_mm", "v_mm", "phi_deg")
@@ -292,7 +293,7 @@ def read_csv_trajectory(path: str | Path, *, max_speed_mm_s: float = 1000.0,
     path = Path(path)
     filt = SampleFilter(max_speed_mm_s=max_speed_mm_s, max_gap_s=max_gap_s, source=str(path))
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # (a byte-order mark is dropped)
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
@@ -310,8 +311,8 @@ def read_csv_trajectory(path: str | Path, *, max_speed_mm_s: float = 1000.0,
                     yield t, u, v, phi, f" (line {line_no})"
 
             t, u, v, phi, seg = clean_samples(rows(), filt)
-    except UnicodeDecodeError:
-        raise InputError(path, "not a text CSV file") from None
+    except (OSError, UnicodeDecodeError) as exc:  # (opening it, or a line that is not text)
+        raise unreadable(path, "trajectory CSV", exc) from None
     return SampledTrajectory(t, u, v, phi, seg, name=str(path), counts=filt.counts)
 
 

@@ -853,3 +853,44 @@ def test_a_signalling_nan_is_refused_without_a_numpy_warning():
         warnings.simplefilter("error")
         with pytest.raises(InputError, match="1 of 64 height values are not finite"):
             check_height_um(heights, "x.exr")
+
+
+def _text_readers():
+    """(name, reader, what its errors call the file, a valid text of it)."""
+    from haptex_compile.io_scene import read_scene
+    from haptex_compile.io_thresholds import read_thresholds_csv
+    from haptex_compile.kes_io import read_kes
+    from playback.device import load_profile
+    from playback.trajectory import read_csv_trajectory
+
+    samples = Path(__file__).resolve().parents[1] / "samples"
+    kes, profile = samples / "kes" / "cotton_poplin.kes.json", samples / "devices" / "haptex24.toml"
+    return [
+        ("scene.toml", read_scene, "scene file", "[motion]\ntolerance = 0.05\n"),
+        ("th.csv", read_thresholds_csv, "threshold CSV",
+         "frequency_hz,threshold_p_um,threshold_np_um\n10,30,20\n100,1,15\n300,0.2,40\n800,1,90\n"),
+        ("x.kes.json", read_kes, "Kawabata file", kes.read_text(encoding="utf-8")),
+        ("profile.toml", load_profile, "device profile", profile.read_text(encoding="utf-8")),
+        ("t.csv", read_csv_trajectory, "trajectory CSV", "t_s,u_mm,v_mm,phi_deg\n0,0,0,0\n1,10,0,0\n"),
+    ]
+
+
+@pytest.mark.parametrize("name, reader, what, valid", _text_readers(), ids=[r[0] for r in _text_readers()])
+def test_text_inputs_that_cannot_be_read_are_one_line_in_one_wording(tmp_path, name, reader, what, valid):
+    # Each reader had its own wording: "cannot read scene (FileNotFoundError)", "file not found",
+    # "[Errno 2] No such file or directory: '...'" (no file named first), "not a text TOML file".
+    path = tmp_path / name
+    cases = {"missing": f"no such {what}", "directory": f"is a directory, not a {what}",
+             "binary": f"not UTF-8 text (byte 1): expected a {what}"}
+    for case, problem in cases.items():
+        if case == "directory":
+            path.mkdir()
+        elif case == "binary":
+            path.rmdir()
+            path.write_bytes(b"a\xff\xfe\x00")
+        with pytest.raises(InputError) as info:
+            reader(path)
+        assert str(info.value) == f"{path}: {problem}", case
+    # UTF-8 with a byte-order mark (as some spreadsheet exports write) is read.
+    path.write_bytes(b"\xef\xbb\xbf" + valid.encode())
+    reader(path)

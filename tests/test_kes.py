@@ -139,7 +139,7 @@ def test_malformed_json(tmp_path, text, words):
 
 
 def test_missing_file_and_unknown_extension(tmp_path):
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="no such Kawabata file"):
         read_kes(tmp_path / "nope.kes.json")
     other = tmp_path / "x.kes.txt"
     other.write_text("{}")
