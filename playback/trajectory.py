@@ -123,7 +123,7 @@ class SampleFilter:
     def accept(self, t_s: float, u_mm: float, v_mm: float, phi_deg: float, where: str = "") -> int | None:
         """Segment number for a good sample, or ``None`` if it is skipped."""
         if not all(math.isfinite(x) for x in (t_s, u_mm, v_mm, phi_deg)):
-            return self._bad("nonfinite", f"non-finite value skipped{where}")
+            return self._bad("nonfinite", f"a value is not a finite number, sample skipped{where}")
         if abs(t_s) > MAX_TIME_S or max(abs(u_mm), abs(v_mm)) > MAX_POSITION_MM or abs(phi_deg) > MAX_ANGLE_DEG:
             return self._bad("range", f"value out of range (|t_s| <= {MAX_TIME_S:g} s, |u_mm|, |v_mm| <="
                                       f" {MAX_POSITION_MM:g} mm, |phi_deg| <= {MAX_ANGLE_DEG:g}), sample skipped{where}")
