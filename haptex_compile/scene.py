@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from playback.device import MAX_CONTACTORS
+
 DEFAULT_SPEED_RANGE = (10.0, 200.0)
 DEFAULT_DIRECTION_RANGE = (0.0, 180.0)
 DEFAULT_TOLERANCE = 0.02
@@ -111,6 +113,8 @@ def scene_from_dict(data: dict, text: str = "", base_dir: str | None = None) -> 
         contactors = grid_contactors(4, 6, 2.0)
     if not np.all(np.isfinite(contactors)):
         raise ValueError("array.contactors_mm has non-finite values")
+    if len(contactors) > MAX_CONTACTORS:  # (compiled, such an asset could not be played, not even simulated)
+        raise ValueError(f"array has {len(contactors)} contactors; the player drives at most {MAX_CONTACTORS}")
 
     def finite(values, name: str) -> tuple[float, ...]:
         arr = np.asarray(values, dtype=float)

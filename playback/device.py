@@ -43,6 +43,8 @@ DEFAULT_PROFILE: dict[str, Any] = {
     "output": {"gain": 1.0, "ttl_ms": 50.0},
 }
 
+# Most contactors (and channels) a profile, and so a scene the player can play, may have.
+MAX_CONTACTORS = 4096
 # (section, key) -> (type, required, (min, max), exclusive_min)
 _FIELDS: dict[tuple[str, str], tuple[type, bool, tuple[float | None, float | None], bool]] = {
     ("usb", "vendor_id"): (int, True, (0, 0xFFFF), False),
@@ -51,8 +53,8 @@ _FIELDS: dict[tuple[str, str], tuple[type, bool, tuple[float | None, float | Non
     ("usb", "endpoint_out"): (int, False, (1, 15), False),
     ("usb", "timeout_ms"): (int, False, (1, 10000), False),
     ("usb", "retries"): (int, False, (0, 10), False),
-    ("contactors", "count"): (int, True, (1, 4096), False),
-    ("contactors", "n_channels"): (int, False, (1, 4096), False),
+    ("contactors", "count"): (int, True, (1, MAX_CONTACTORS), False),
+    ("contactors", "n_channels"): (int, False, (1, MAX_CONTACTORS), False),
     ("dac", "bits"): (int, True, (1, 16), False),
     ("dac", "full_scale_v_rms"): (float, True, (0, None), True),
     ("calibration", "um_per_v_40hz"): (float, True, (0, None), True),

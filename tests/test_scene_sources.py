@@ -53,11 +53,26 @@ def test_scene_sections_are_optional_and_lists_are_used_as_given():
     "[motion]\nspeed_range_mm_s = [1e-300, 1e-299]",
     "[motion]\nspeeds_mm_s = [1e-300]",
     "[array]\ncontactors_mm = [[1e300, 0.0]]",
+    # 10000 contactors compiled into an asset the player refused ("count must be <= 4096")
+    "[array]\ngrid = { rows = 100, cols = 100, pitch_mm = 1.0 }",
 ])
 def test_bad_scenes_are_input_errors(text):
     with pytest.raises(InputError) as info:
         parse_scene(text, "bad.toml")
     assert str(info.value).startswith("bad.toml: ") and "\n" not in str(info.value)
+
+
+def test_the_largest_array_a_scene_may_have_is_the_largest_the_player_drives():
+    from playback.device import DEFAULT_PROFILE, MAX_CONTACTORS, profile_from_dict
+
+    side = int(MAX_CONTACTORS ** 0.5)
+    assert side * side == MAX_CONTACTORS
+    scene = parse_scene(f"[array]\ngrid = {{ rows = {side}, cols = {side}, pitch_mm = 0.5 }}\n", "s.toml")
+    assert len(scene.contactors_mm) == MAX_CONTACTORS
+    n = MAX_CONTACTORS
+    profile_from_dict({**DEFAULT_PROFILE, "contactors": {"count": n, "n_channels": n, "channel": list(range(n))}})
+    with pytest.raises(InputError, match="at most 4096"):
+        parse_scene(f"[array]\ngrid = {{ rows = {side}, cols = {side + 1}, pitch_mm = 0.5 }}\n", "s.toml")
 
 
 def test_grid_contactors_order_and_pitch():
