@@ -185,11 +185,17 @@ def _fill(f: h5py.File, c: AssetContent) -> None:
         _fill_groups(f, c, tables)
 
 
+def _utf8(text: str) -> str:
+    """`text` as UTF-8 can hold it: a file name's bytes that are not UTF-8 (which Python keeps
+    as lone surrogates) become U+FFFD (HDF5 refused the name: "surrogates not allowed")."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def _fill_groups(f: h5py.File, c: AssetContent, tables: dict[str, DeflatedTable]) -> None:
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["generator"] = f"haptex {__version__}"
-    f.attrs["source_name"] = c.source_name
+    f.attrs["source_name"] = _utf8(c.source_name)
     f.attrs["source_kind"] = c.source_kind
 
     s = f.create_group("surface", track_order=False)
@@ -225,7 +231,7 @@ def _fill_groups(f: h5py.File, c: AssetContent, tables: dict[str, DeflatedTable]
     _dataset(p, "kernel_frequency_hz", kf)
     _dataset(p, "kernel_h40", h40)
     _dataset(p, "kernel_h320", h320)
-    p.attrs["threshold_provenance"] = th.provenance
+    p.attrs["threshold_provenance"] = _utf8(th.provenance)
     p.attrs["threshold_smoothing_hz"] = SMOOTHING_HZ
     p.attrs["base_frequencies_hz"] = np.asarray(c.model.base_frequencies_hz, dtype=np.float64)
     p.attrs["summation_exponent"] = float(c.model.summation_exponent)

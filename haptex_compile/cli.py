@@ -40,6 +40,26 @@ def _parse_pixel(ctx: click.Context, param: click.Parameter, value: str | None):
         raise click.BadParameter(str(exc)) from None
 
 
+def _make_word(path: str) -> str:
+    """`path` as one word of a Make rule: spaces, '#' and '$' escaped (a path with a space was
+    two prerequisites)."""
+    return path.replace("$", "$$").replace("#", "\\#").replace(" ", "\\ ")
+
+
+def _write_dependency_file(md_path: str, lines: list[str]) -> None:
+    """Write the rules `lines` to `md_path` atomically, as bytes: a file name's bytes that are not
+    UTF-8 are written as they are, as Make reads them (writing them as text was a
+    UnicodeEncodeError traceback, and left the temporary file)."""
+    Path(md_path).parent.mkdir(parents=True, exist_ok=True)  # as the assets' folders are
+    tmp = f"{md_path}.tmp{os.getpid()}"
+    try:
+        Path(tmp).write_bytes(("\n".join(lines) + "\n").encode("utf-8", "surrogateescape"))
+        os.replace(tmp, md_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def _dependencies(spec: str, scene_path: str | None, kes: str | None, scene) -> list[str]:
     deps = []
     if not spec.lower().startswith("brownian:"):
@@ -151,10 +171,8 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
         else:
             LOG.info("%s -> %s", spec, out)
     if md_path and not failures:
-        lines = [f"{out}: {' '.join(_dependencies(s, scene_path, kes, scene))}" for s, out in zip(inputs, outs)]
-        Path(md_path).parent.mkdir(parents=True, exist_ok=True)  # as the assets' folders are
-        tmp = f"{md_path}.tmp{os.getpid()}"
-        Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
-        os.replace(tmp, md_path)
+        lines = [f"{_make_word(out)}: {' '.join(map(_make_word, _dependencies(s, scene_path, kes, scene)))}"
+                 for s, out in zip(inputs, outs)]
+        _write_dependency_file(md_path, lines)
     if failures:
         sys.exit(EXIT_BAD_INPUT)

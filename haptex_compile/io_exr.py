@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -102,7 +103,12 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
         raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
     try:
         with _library_output(path):
-            OpenEXR.File(header, stored).write(tmp)
+            if _utf8_name(Path(tmp)):
+                OpenEXR.File(header, stored).write(tmp)
+            else:  # (see _utf8_name)
+                buffer = io.BytesIO()
+                OpenEXR.File(header, stored).write(buffer)
+                Path(tmp).write_bytes(buffer.getbuffer())
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)  # the data is on disk before the name points at it
@@ -191,9 +197,25 @@ def read_exr_channels(path: str | os.PathLike, *, max_pixels: int = 200_000_000
         raise InputError(path, f"corrupt or unreadable EXR file ({_first_line(exc)})") from None
 
 
+def _utf8_name(p: Path) -> bool:
+    """`p` can be passed to the OpenEXR binding as a name: it refuses names with bytes that are
+    not UTF-8 (which Python keeps as lone surrogates)."""
+    try:
+        str(p).encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _readable(p: Path) -> str | io.BytesIO:
+    """What the OpenEXR binding reads file `p` from: its name, or its bytes (see
+    :func:`_utf8_name`)."""
+    return str(p) if _utf8_name(p) else io.BytesIO(p.read_bytes())
+
+
 def _read_channels(p: Path, path: str | os.PathLike, max_pixels: int) -> dict[str, np.ndarray]:
     """:func:`read_exr_channels` past its checks of the path and the magic number."""
-    head = OpenEXR.File(str(p), header_only=True)
+    head = OpenEXR.File(_readable(p), header_only=True)
     if len(head.parts) != 1:
         raise InputError(path, f"multi-part EXR ({len(head.parts)} parts) is not supported; "
                                "write a single-part file")
@@ -216,7 +238,7 @@ def _read_channels(p: Path, path: str | os.PathLike, max_pixels: int) -> dict[st
         if channel.xSampling != 1 or channel.ySampling != 1:
             raise InputError(path, f"EXR channel {channel.name!r} is sub-sampled "
                                    f"({channel.xSampling} x {channel.ySampling}); not supported")
-    full = OpenEXR.File(str(p), separate_channels=True)
+    full = OpenEXR.File(_readable(p), separate_channels=True)
     result: dict[str, np.ndarray] = {}
     for name, channel in full.channels().items():
         pixels = channel.pixels

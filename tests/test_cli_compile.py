@@ -472,6 +472,31 @@ def test_make_dependency_file_and_out_dir_with_jobs(tmp_path, scene_file):
     assert f"{out_dir / 'h.tact.h5'}: {npy} {scene_file}" in rules
 
 
+def test_file_names_that_are_not_utf8_or_hold_make_characters(tmp_path, scene_file):
+    # A file name's bytes need not be UTF-8: the asset's writer refused the name ("surrogates not
+    # allowed"), the EXR binding both reading and writing, and the dependency file was a
+    # UnicodeEncodeError traceback that left its temporary file. Make reads a space as the end
+    # of a word: "sp ace/a b.npy" was two prerequisites.
+    import os
+
+    from haptex_compile.io_exr import read_exr_channels
+    from playback.asset import read_asset
+
+    odd = os.fsdecode(b"h\xff\xfe")  # (Python holds those bytes as lone surrogates)
+    folder = tmp_path / "sp ace"
+    folder.mkdir()
+    npy, out, exr, md = (folder / f"{odd} #$1{ext}" for ext in (".npy", ".tact.h5", ".exr", ".d"))
+    np.save(npy, np.random.default_rng(0).normal(size=(24, 24)))
+    r = run("haptex-compile", str(npy), "-o", str(out), "--scene", str(scene_file), "--pixel-size", "20um",
+            "--exr", str(exr), "--md", str(md))
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in folder.iterdir()) == sorted(p.name for p in (npy, out, exr, md))
+    assert read_asset(out).source_name == "h\ufffd\ufffd #$1.npy"
+    assert set(read_exr_channels(exr)) >= {"height", "a40", "a320"}
+    word = lambda p: os.fsencode(p).replace(b" ", b"\\ ").replace(b"#", b"\\#").replace(b"$", b"$$")  # noqa: E731
+    assert md.read_bytes() == word(out) + b": " + word(npy) + b" " + word(scene_file) + b"\n"
+
+
 def test_a_height_map_in_nanometres_is_compiled_with_a_warning(tmp_path, scene_file):
     # Heights of a few µm written in nm read as thousands of µm: compiled, warned of on
     # stderr (naming the file) and in the asset, which haptex-inspect shows.
