@@ -49,6 +49,7 @@ from haptex_compile.surface import Surface
 from haptex_compile.thresholds import SMOOTHING_HZ
 from haptex_compile.tables import Tables
 from playback.paths import check_replaceable
+from playback.text_files import utf8_text
 
 FORMAT_NAME = "haptex-tactile-asset"
 FORMAT_VERSION = "1.0"
@@ -185,17 +186,11 @@ def _fill(f: h5py.File, c: AssetContent) -> None:
         _fill_groups(f, c, tables)
 
 
-def _utf8(text: str) -> str:
-    """`text` as UTF-8 can hold it: a file name's bytes that are not UTF-8 (which Python keeps
-    as lone surrogates) become U+FFFD (HDF5 refused the name: "surrogates not allowed")."""
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
-
-
 def _fill_groups(f: h5py.File, c: AssetContent, tables: dict[str, DeflatedTable]) -> None:
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["generator"] = f"haptex {__version__}"
-    f.attrs["source_name"] = _utf8(c.source_name)
+    f.attrs["source_name"] = utf8_text(c.source_name)
     f.attrs["source_kind"] = c.source_kind
 
     s = f.create_group("surface", track_order=False)
@@ -231,7 +226,7 @@ def _fill_groups(f: h5py.File, c: AssetContent, tables: dict[str, DeflatedTable]
     _dataset(p, "kernel_frequency_hz", kf)
     _dataset(p, "kernel_h40", h40)
     _dataset(p, "kernel_h320", h320)
-    p.attrs["threshold_provenance"] = _utf8(th.provenance)
+    p.attrs["threshold_provenance"] = utf8_text(th.provenance)
     p.attrs["threshold_smoothing_hz"] = SMOOTHING_HZ
     p.attrs["base_frequencies_hz"] = np.asarray(c.model.base_frequencies_hz, dtype=np.float64)
     p.attrs["summation_exponent"] = float(c.model.summation_exponent)

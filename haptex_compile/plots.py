@@ -366,7 +366,7 @@ def asset_figure(path: str | Path, *, speed_mm_s: float = 80.0, direction_deg: f
     _panel_map(fig, fig.add_subplot(next(slots)), u, v, a320, "a320", speed_mm_s, direction_deg, "magma")
     _panel_speed(fig.add_subplot(next(slots)), asset.tables, width / 2, height / 2, speed_mm_s, direction_deg)
     _panel_text(fig.add_subplot(next(slots)), asset, extras)
-    fig.suptitle(f"{path.name}: {asset.source_name}", fontsize=12)
+    fig.suptitle(shown_text(f"{path.name}: {asset.source_name}"), fontsize=12)
     return fig
 
 
@@ -438,7 +438,7 @@ def record_figure(path: str | Path) -> "Figure":
         for ax in axs.ravel():
             ax.axis("off")
         axs[0, 0].text(0.0, 1.0, "the record holds no frames", va="top", transform=axs[0, 0].transAxes)
-        fig.suptitle(f"{path.name}: empty playback record")
+        fig.suptitle(shown_text(f"{path.name}: empty playback record"))
         return fig
     _timeline(fig, axs[0, 0], t, np.asarray(r["a40"], float), late, skipped_t, frame_s, "a40")
     _timeline(fig, axs[0, 1], t, np.asarray(r["a320"], float), late, skipped_t, frame_s, "a320")
@@ -469,9 +469,9 @@ def record_figure(path: str | Path) -> "Figure":
     ax.grid(True, which="both", alpha=0.3)
 
     n_late = int(late.sum())
-    fig.suptitle(f"{path.name}: playback of {Path(str(attrs.get('asset', '?'))).name}, mode {attrs.get('mode', '?')}, "
-                 f"device {attrs.get('device', '?')}; {t.size} frames, {n_late} late, "
-                 f"{int(attrs.get('frames_skipped', 0))} skipped", fontsize=11)
+    fig.suptitle(shown_text(f"{path.name}: playback of {Path(str(attrs.get('asset', '?'))).name}, mode {attrs.get('mode', '?')}, "
+                            f"device {attrs.get('device', '?')}; {t.size} frames, {n_late} late, "
+                            f"{int(attrs.get('frames_skipped', 0))} skipped"), fontsize=11)
     return fig
 
 

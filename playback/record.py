@@ -36,6 +36,7 @@ import numpy as np
 
 from playback.errors import InputError
 from playback.paths import check_replaceable
+from playback.text_files import utf8_text
 
 RECORD_FORMAT = "haptex-playback-record"
 RECORD_VERSION = "1.0"
@@ -102,7 +103,7 @@ class Recorder:
         for key, value in attrs.items():
             if isinstance(value, (dict, list, tuple)) or value is None:
                 value = json.dumps(value, default=float)
-            self.file.attrs[key] = value
+            self.file.attrs[key] = utf8_text(value) if isinstance(value, str) else value  # (a path's name)
 
     @property
     def pending(self) -> int:

@@ -9,6 +9,13 @@ from pathlib import Path
 from playback.errors import InputError
 
 
+def utf8_text(text: str) -> str:
+    """`text` as UTF-8 (and so HDF5) can hold it: the bytes of a file name that are not UTF-8,
+    which Python holds as lone surrogates, become U+FFFD (HDF5 refused such a name, "surrogates
+    not allowed")."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def unreadable(path: str | Path, what: str, exc: OSError | UnicodeDecodeError) -> InputError:
     """The one-line error for text file `path` (a `what`, e.g. "scene file") that raised `exc`
     when opened or decoded."""

@@ -144,3 +144,32 @@ def test_validating_a_record_says_it_is_one(record):
     assert r.exit_code == 1
     [line] = r.output.strip().splitlines()
     assert str(record) in line and "a playback record" in line and "not a tactile asset" in line
+
+
+def test_files_named_with_bytes_that_are_not_utf8(tmp_path):
+    # Python holds such bytes as lone surrogates: the recorder could not store the asset's name
+    # (UnicodeEncodeError traceback, no record), and the plot could not draw it in its title
+    # (TypeError traceback, no plot). Run as a user runs the tools (the test runner's captured
+    # output refuses such names where a terminal shows them).
+    import os
+    import subprocess
+    import sys
+
+    def tool(module: str, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", f"from {module} import main; main()", *args],
+                              capture_output=True, timeout=300)
+
+    odd = os.fsdecode(b"\xff\xfe")
+    asset = write_test_asset(tmp_path / f"a{odd}.tact.h5")
+    rec, png = tmp_path / f"r{odd}.h5", tmp_path / f"p{odd}.png"
+    r = tool("playback.cli", str(asset), "--sweep", "speed=80,duration=0.2", "--fast", "--record", str(rec))
+    assert r.returncode == 0, r.stderr
+    with h5py.File(rec) as f:
+        assert f.attrs["asset"] == str(asset).replace(odd, "\ufffd\ufffd")
+    r = tool("haptex_compile.inspect_cli", str(rec))
+    assert r.returncode == 0 and "a\ufffd\ufffd.tact.h5".encode() in r.stdout, r.stderr
+    for shown in (rec, asset):
+        r = tool("haptex_compile.inspect_cli", "--plot", str(png), str(shown))
+        assert r.returncode == 0, (shown, r.stderr)
+        assert png.stat().st_size > 0
+        png.unlink()
