@@ -43,6 +43,7 @@ TOOLS = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compi
 TIME_LIMIT_S = 300.0
 OWN_LINE = re.compile(r"^haptex(\.\w+)*: (WARNING|INFO|ERROR): ")
 SPEC = "brownian:H=0.7,size=24,pixel=20um,rms=5um,seed=1"
+ODD = os.fsdecode(b"n\xff\xfe #$1")  # a file name's bytes need not be UTF-8
 KES = REPO / "samples" / "kes" / "cotton_poplin.kes.json"
 # (name, what the case should give, tool, arguments ({d}: the case's folder), files to make
 # there first: name -> text, bytes or a function of the path)
@@ -111,6 +112,8 @@ def cases() -> list[Case]:
          scene("[render]\nbase_frequencies_hz = [0.001, 0.002]\n")),
         ("scene: base frequencies 320, 40 Hz", "refused", "haptex-compile", [SPEC, *out, *tiny],
          scene("[render]\nbase_frequencies_hz = [320, 40]\n")),
+        ("scene: 100 x 100 contactors", "refused", "haptex-compile", [SPEC, *out, *tiny],
+         {"s.toml": "[array]\ngrid = { rows = 100, cols = 100, pitch_mm = 1.0 }\n"}),
         ("scene: a speed twice", "accepted", "haptex-compile", [SPEC, *out, *tiny],
          {"s.toml": "[motion]\nspeeds_mm_s = [40, 40]\ndirections_deg = [0]\ntolerance = 0.5\n"}),
         ("scene: not UTF-8", "refused", "haptex-compile", [SPEC, *out, *tiny], {"s.toml": b"\xff\xfe[motion]\n"}),
@@ -157,6 +160,9 @@ def cases() -> list[Case]:
          {"i.png": _png((64, 64))}),
         ("-o the input", "refused", "haptex-compile", ["{d}/h.npy", "-o", "{d}/h.npy"], {"h.npy": _npy(5.0)}),
         ("input named with an escape sequence", "refused", "haptex-compile", ["{d}/no\x1b[31mne.npy", *out], {}),
+        ("names with bytes that are not UTF-8, a space, '#' and '$'", "accepted", "haptex-compile",
+         [f"{{d}}/{ODD}.npy", "-o", f"{{d}}/{ODD}.tact.h5", "--exr", f"{{d}}/{ODD}.exr", "--md", f"{{d}}/{ODD}.d",
+          *tiny, "--pixel-size", "20um"], {f"{ODD}.npy": _npy(5.0)} | scene("")),
         # the player
         ("--sweep speed given twice", "refused", "haptex-play", [*play, "--sweep", "speed=80,speed=90,duration=1", "--fast"],
          {"a.tact.h5": _asset}),
@@ -173,6 +179,8 @@ def cases() -> list[Case]:
          {"a.tact.h5": _asset, "t.csv": b"\xff\xfe"}),
         ("trajectory: NaN and 1e300 rows", "accepted", "haptex-play", [*play, "--trajectory", "{d}/t.csv", "--fast"],
          {"a.tact.h5": _asset, "t.csv": "t_s,u_mm,v_mm,phi_deg\n0,0,0,0\n0.1,nan,0,0\n0.2,1e300,0,0\n0.5,4,0,0\n1,8,0,0\n"}),
+        ("--record, names with bytes that are not UTF-8", "accepted", "haptex-play",
+         [f"{{d}}/{ODD}.tact.h5", *sweep, "--record", f"{{d}}/{ODD}.h5"], {f"{ODD}.tact.h5": _asset}),
         ("profile: missing", "refused", "haptex-play", [*play, *sweep, "--profile", "{d}/none.toml"], {"a.tact.h5": _asset}),
         # the inspector
         ("asset: escape sequences and 5000 characters in attributes", "accepted", "haptex-inspect", ["{d}/b.tact.h5"],
@@ -182,6 +190,8 @@ def cases() -> list[Case]:
          {"a.tact.h5": _asset, "b.tact.h5": _edited(lambda d: d / "a.tact.h5", _set_attrs(format="x\x1b[31m" * 600))}),
         ("--validate with --plot", "refused", "haptex-inspect", ["--validate", "--plot", "{d}/p.png", "{d}/a.tact.h5"],
          {"a.tact.h5": _asset}),
+        ("--plot, names with bytes that are not UTF-8", "accepted", "haptex-inspect",
+         ["--plot", f"{{d}}/{ODD}.png", f"{{d}}/{ODD}.tact.h5"], {f"{ODD}.tact.h5": _asset}),
         ("--speed without --plot", "accepted", "haptex-inspect", ["{d}/a.tact.h5", "--speed", "30"], {"a.tact.h5": _asset}),
     ]
 
