@@ -227,10 +227,17 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         # No repeating tile: the fractal model (paper, Sect. 6) with the photo's own roughness.
         estimate, _ = roughness_from_residual(flat - flat.mean(), pixel_size_um=pixel_size_um)
         hurst = float(np.clip(estimate.hurst, 0.05, 0.95))
-        rms = options.relief_um if options.relief_um is not None else DEFAULT_RELIEF_RMS_UM
-        if options.relief_um is None:
-            LOG.warning("%s: no lattice and no height scale; Brownian surface of %g um RMS", spec, rms)
-        h = brownian_surface((ny, nx), hurst, pixel_size_um=pixel_size_um, rms_um=rms, seed=options.seed)
+        # Scaled as a solved relief is (--relief-kind pv and --kes were ignored here: the
+        # height was --relief-um as an RMS, or the default).
+        unit = brownian_surface((ny, nx), hurst, pixel_size_um=pixel_size_um, rms_um=1.0, seed=options.seed)
+        h = relief_scale(options, spec, unit, pixel_size_um, report)
+        rms = float(np.std(h))
+        ignored = [flag for flag, given in (("--light", options.light is not None), ("--sfs", options.sfs != "default"))
+                   if given]
+        if ignored:
+            LOG.warning("%s: %s %s not apply: the photo has no credible lattice, and its surface is a Brownian"
+                        " surface of its roughness, not heights from shading: ignored", spec, ", ".join(ignored),
+                        "does" if len(ignored) == 1 else "do")
         report["surface"] = f"not periodic ({lattice.reason}): Brownian surface, H = {hurst:.3f} (D = {3 - hurst:.3f}) from the photo"
         return SourceResult(Surface(h, pixel_size_um, False), "photo", spec, report,
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},

@@ -301,3 +301,40 @@ def test_a_pixel_size_that_makes_the_window_too_large_is_refused_before_painting
     monkeypatch.setattr(photo_module, "MAX_WINDOW_PIXELS", rows * cols - 1)
     with pytest.raises(InputError, match=rf"at 20 um pixels the surface would be a periodic window of {cols} x {rows} px"):
         photo_surface(image, PIXEL_UM, options, "w.png", {})
+
+
+def test_a_photo_without_a_lattice_is_scaled_as_a_solved_relief_is(monkeypatch, caplog):
+    # Its Brownian surface took --relief-um as an RMS whatever --relief-kind said, and the
+    # default 10 um for --kes (the Kawabata file ignored), and --light and --sfs without a word.
+    from pathlib import Path
+
+    from scipy import ndimage
+
+    from haptex_compile.kes import simulate_kes_smd
+    from haptex_compile.kes_io import read_kes
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    noise = ndimage.gaussian_filter(np.random.default_rng(3).standard_normal((160, 160)), 2.0)
+    grey = 0.5 + 0.1 * noise / noise.std()  # texture without a repeating tile
+
+    def surface(**options):
+        result = photo_surface(grey, 20.0, SourceOptions(**options), "noise.png", {})
+        assert not result.surface.periodic  # (no credible lattice: the Brownian path)
+        return result
+
+    h = surface(relief_um=5.0, relief_kind="pv").surface.height_um
+    assert float(np.ptp(h)) == pytest.approx(5.0, rel=1e-9)
+    h = surface(relief_um=5.0).surface.height_um
+    assert float(np.std(h)) == pytest.approx(5.0, rel=1e-9)
+    kes_path = Path(__file__).resolve().parents[1] / "samples" / "kes" / "satin.kes.json"
+    result = surface(kes_path=str(kes_path))
+    kes = read_kes(kes_path)
+    smd = [simulate_kes_smd(result.surface.height_um, 20.0, d, periodic=False) for d in ("warp", "weft")]
+    # (one scale for both directions: their geometric mean matched, as for a solved relief)
+    assert float(np.sqrt(np.prod(smd))) == pytest.approx(np.sqrt(kes.smd_um["warp"] * kes.smd_um["weft"]), rel=0.01)
+    assert result.roughness["rms_um"] == pytest.approx(float(np.std(result.surface.height_um)))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        surface(relief_um=5.0, light=(45.0, 30.0), sfs="accurate")
+    assert any("noise.png: --light, --sfs do not apply: the photo has no credible lattice" in r.getMessage()
+               for r in caplog.records)
