@@ -232,8 +232,8 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         unit = brownian_surface((ny, nx), hurst, pixel_size_um=pixel_size_um, rms_um=1.0, seed=options.seed)
         h = relief_scale(options, spec, unit, pixel_size_um, report)
         rms = float(np.std(h))
-        ignored = [flag for flag, given in (("--light", options.light is not None), ("--sfs", options.sfs != "default"))
-                   if given]
+        ignored = [flag for flag, given in (("--light", options.light is not None), ("--sfs", options.sfs != "default"),
+                                            ("--roughness none", options.roughness == "none")) if given]
         if ignored:
             LOG.warning("%s: %s %s not apply: the photo has no credible lattice, and its surface is a Brownian"
                         " surface of its roughness, not heights from shading: ignored", spec, ", ".join(ignored),

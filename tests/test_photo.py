@@ -335,6 +335,6 @@ def test_a_photo_without_a_lattice_is_scaled_as_a_solved_relief_is(monkeypatch, 
     assert result.roughness["rms_um"] == pytest.approx(float(np.std(result.surface.height_um)))
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="haptex"):
-        surface(relief_um=5.0, light=(45.0, 30.0), sfs="accurate")
-    assert any("noise.png: --light, --sfs do not apply: the photo has no credible lattice" in r.getMessage()
+        surface(relief_um=5.0, light=(45.0, 30.0), sfs="accurate", roughness="none")
+    assert any("noise.png: --light, --sfs, --roughness none do not apply: the photo has no credible lattice" in r.getMessage()
                for r in caplog.records)
