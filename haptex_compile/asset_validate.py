@@ -52,6 +52,10 @@ def describe_h5(obj: h5py.Group) -> dict[str, Any]:
 def validate_asset(path: str | Path) -> list[str]:
     """Problems found in the asset at `path` (empty when valid); each is one line."""
     path = Path(path)
+    if not path.exists():
+        return [f"{path}: no such file"]
+    if path.is_dir():
+        return [f"{path}: is a directory, not a tactile asset"]
     try:
         if not h5py.is_hdf5(str(path)):
             return [f"{path}: not an HDF5 file"]

@@ -248,7 +248,17 @@ def main(files, validate, plot_path, speed, direction):
         click.echo(f"wrote {plot_path}")
         return
     from playback.asset import refuse_crashing
+    from playback.errors import HaptexError, one_line
 
+    # Every file is summarised, a bad one in one line, as --validate checks every one (the
+    # first bad file ended the run: `haptex-inspect *.tact.h5` stopped there).
+    bad = 0
     for path in files:
-        refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
-        click.echo(record_summary(path) if is_playback_record(path) else summary(path))
+        try:
+            refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
+            click.echo(record_summary(path) if is_playback_record(path) else summary(path))
+        except (HaptexError, OSError) as exc:
+            bad += 1
+            click.echo(f"haptex-inspect: error: {one_line(exc)}", err=True)
+    if bad:
+        sys.exit(EXIT_BAD_INPUT)

@@ -173,3 +173,19 @@ def test_files_named_with_bytes_that_are_not_utf8(tmp_path):
         assert r.returncode == 0, (shown, r.stderr)
         assert png.stat().st_size > 0
         png.unlink()
+
+
+def test_every_file_is_summarised_and_a_missing_one_named_as_such(tmp_path):
+    # The first bad file ended a summary run (`haptex-inspect *.tact.h5` stopped there) where
+    # --validate checks every file; and --validate called a missing file "not an HDF5 file".
+    from haptex_compile.inspect_cli import main
+
+    good, missing = write_test_asset(tmp_path / "a.tact.h5"), tmp_path / "none.tact.h5"
+    r = CliRunner().invoke(main, [str(good), str(missing), str(good)])
+    assert r.exit_code == 1
+    assert r.stdout.count(f"{good}: haptex tactile asset") == 2
+    assert r.stderr.strip().splitlines() == [f"haptex-inspect: error: {missing}: no such file"]
+    r = CliRunner().invoke(main, ["--validate", str(missing), str(good)])
+    assert r.exit_code == 1
+    assert r.stderr.strip().splitlines() == [f"haptex-inspect: invalid: {missing}: no such file"]
+    assert r.stdout.strip() == f"{good}: valid haptex tactile asset"
