@@ -120,7 +120,11 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     """
     from haptex_compile.io_scene import read_scene
     from haptex_compile.scene import default_scene
+    from dataclasses import replace
+
+    from haptex_compile.kes_source import batch_stems
     from haptex_compile.sources import SourceOptions, input_kind, output_stem
+    from playback.errors import InputError
 
     if (output is None) == (out_dir is None):
         raise click.UsageError("give exactly one of -o/--output or --out-dir")
@@ -139,13 +143,24 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     scene = read_scene(scene_path) if scene_path else default_scene()
     options = SourceOptions(pixel_size_um=pixel_size, relief_um=relief_um, relief_kind=relief_kind, sfs=sfs,
                             light=light, kes_path=kes, roughness=roughness, seed=seed)
-    outs = [output] if output is not None else [str(Path(out_dir) / f"{output_stem(s)}.tact.h5") for s in inputs]
+    # One asset per input, and per fabric of a Kawabata CSV of several (a batch file).
+    entries = []  # (input, its row in a batch CSV or None, the asset's file stem)
+    for spec in inputs:
+        stems = batch_stems(spec, output_stem(spec)) if input_kind(spec) == "kes" else None
+        if stems is not None and output is not None:
+            raise InputError(spec, f"holds {len(stems)} fabrics: give --out-dir for an asset of each")
+        entries += [(spec, None, output_stem(spec))] if stems is None else [(spec, k, st) for k, st in enumerate(stems)]
+    if exr_path is not None and len(entries) != 1:
+        raise click.UsageError("--exr takes one input (of one fabric)")
+    outs = [output] if output is not None else [str(Path(out_dir) / f"{stem}.tact.h5") for _, _, stem in entries]
     # Nothing this run reads is overwritten, and no output twice (a.png and a.jpg to --out-dir).
-    writes = [("-o" if output is not None else f"the asset of {s}", o) for s, o in zip(inputs, outs)]
+    writes = [("-o" if output is not None else f"the asset of {s}" + ("" if k is None else f" (fabric {k + 1})"), o)
+              for (s, k, _), o in zip(entries, outs)]
     writes += [(what, path) for what, path in (("--exr", exr_path), ("--md", md_path)) if path]
     refuse_overwrites(writes, sorted({d for s in inputs for d in _dependencies(s, scene_path, kes, scene)}))
-    jobs_list = [{"spec": s, "out": o, "scene": scene, "options": options, "exr": exr_path, "exr_speed": exr_speed,
-                  "exr_direction": exr_direction, "debug": debug} for s, o in zip(inputs, outs)]
+    jobs_list = [{"spec": s, "out": o, "scene": scene, "options": replace(options, kes_row=k), "exr": exr_path,
+                  "exr_speed": exr_speed, "exr_direction": exr_direction, "debug": debug}
+                 for (s, k, _), o in zip(entries, outs)]
     failures = []
     if jobs > 1 and len(jobs_list) > 1:
         from concurrent.futures import ProcessPoolExecutor  # here: multiprocessing costs start-up time
@@ -172,7 +187,7 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
             LOG.info("%s -> %s", spec, out)
     if md_path and not failures:
         lines = [f"{_make_word(out)}: {' '.join(map(_make_word, _dependencies(s, scene_path, kes, scene)))}"
-                 for s, out in zip(inputs, outs)]
+                 for (s, _, _), out in zip(entries, outs)]
         _write_dependency_file(md_path, lines)
     if failures:
         sys.exit(EXIT_BAD_INPUT)

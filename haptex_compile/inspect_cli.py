@@ -88,7 +88,7 @@ def summary(path: str) -> str:
         lines.append(f"  warning    {_shown(report['relief_warning'])}")
     if "out_of_gamut_fraction" in report:
         lines.append(f"  gamut      {report['out_of_gamut_fraction']:.1%} of table values out of gamut (max measure {report['out_of_gamut_max']:.3g})")
-    for key in ("pixel_size", "relief", "surface"):
+    for key in ("fabric", "pixel_size", "relief", "surface"):
         if key in report:
             lines.append(f"  {key:<10} {_shown(report[key])}")
     return "\n".join(lines)

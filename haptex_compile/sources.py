@@ -42,6 +42,9 @@ class SourceOptions:
     kes_path: str | None = None
     roughness: str = "auto"  # "auto" | "none"
     seed: int = 0
+    # Which fabric of a .kes.csv of several (0-based; one input each, see kes_source.batch_stems);
+    # None: the file must hold one.
+    kes_row: int | None = None
 
 
 @dataclass

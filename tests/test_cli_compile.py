@@ -497,6 +497,35 @@ def test_file_names_that_are_not_utf8_or_hold_make_characters(tmp_path, scene_fi
     assert md.read_bytes() == word(out) + b": " + word(npy) + b" " + word(scene_file) + b"\n"
 
 
+def test_a_kawabata_csv_of_several_fabrics_gives_an_asset_of_each(tmp_path, scene_file):
+    # The batch format (one row per fabric) was refused: "holds 3 fabrics; compile them one by
+    # one (split the CSV)".
+    import json
+
+    import h5py
+
+    csv = tmp_path / "lab.kes.csv"
+    csv.write_text("fabric,smd_warp_um,smd_weft_um,miu_warp,miu_weft,mmd_warp,mmd_weft,ends_per_cm,picks_per_cm,weave\n"
+                   "cotton poplin,3.2,4.1,0.18,0.2,0.012,0.015,48,30,plain\n"
+                   "denim/stretch,5,6,0.2,0.2,0.01,0.01,30,20,twill\n"
+                   "cotton poplin,2,2,0.2,0.2,0.01,0.01,48,30,plain\n")
+    out, md = tmp_path / "out", tmp_path / "deps.d"
+    r = run("haptex-compile", str(csv), "--out-dir", str(out), "--scene", str(scene_file), "--md", str(md))
+    assert r.returncode == 0, r.stderr
+    names = ["lab-cotton_poplin-1.tact.h5", "lab-denim_stretch.tact.h5", "lab-cotton_poplin-3.tact.h5"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)
+    for name, (fabric, warp, weft) in zip(names, [("cotton poplin", 3.2, 4.1), ("denim/stretch", 5, 6),
+                                                  ("cotton poplin", 2, 2)]):
+        with h5py.File(out / name) as f:
+            report = json.loads(f["report"].attrs["json"])
+        assert report["fabric"] == fabric
+        assert report["smd_simulated_um"]["warp"] == pytest.approx(warp, rel=0.05)
+        assert report["smd_simulated_um"]["weft"] == pytest.approx(weft, rel=0.05)
+    assert md.read_text().splitlines() == [f"{out / n}: {csv} {scene_file}" for n in names]
+    r = run("haptex-compile", str(csv), "-o", str(tmp_path / "x.tact.h5"), "--scene", str(scene_file))
+    assert r.returncode == 1 and r.stderr.strip() == f"haptex-compile: error: {csv}: holds 3 fabrics: give --out-dir for an asset of each"
+
+
 def test_a_height_map_in_nanometres_is_compiled_with_a_warning(tmp_path, scene_file):
     # Heights of a few µm written in nm read as thousands of µm: compiled, warned of on
     # stderr (naming the file) and in the asset, which haptex-inspect shows.
