@@ -118,11 +118,11 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     file (.kes.json, .kes.csv) or a Brownian spec such as
     brownian:H=0.7,size=1024,pixel=10um,rms=5um,seed=3.
     """
-    from haptex_compile.io_scene import read_scene
-    from haptex_compile.scene import default_scene
     from dataclasses import replace
 
+    from haptex_compile.io_scene import read_scene
     from haptex_compile.kes_source import batch_stems
+    from haptex_compile.scene import default_scene
     from haptex_compile.sources import SourceOptions, input_kind, output_stem
     from playback.errors import InputError
 
