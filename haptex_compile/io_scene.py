@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import tomllib
 from functools import lru_cache
 from importlib import resources
@@ -12,6 +13,8 @@ import jsonschema
 from haptex_compile.errors import InputError
 from haptex_compile.scene import Scene, scene_from_dict
 from playback.text_files import read_text
+
+LOG = logging.getLogger("haptex.scene")
 
 
 @lru_cache(maxsize=None)
@@ -36,9 +39,18 @@ def parse_scene(text: str, source: str | Path, base_dir: str | None = None) -> S
         err = errors[0]
         raise InputError(source, f"{_where(err)}: {err.message}")
     try:
-        return scene_from_dict(data, text=text, base_dir=base_dir)
+        scene = scene_from_dict(data, text=text, base_dir=base_dir)
     except ValueError as exc:
         raise InputError(source, str(exc)) from None
+    # Explicit nodes are used as given, less repeats (a direction and its reverse, d + 180,
+    # are one): said, as a list shorter than the one written would puzzle.
+    motion = data.get("motion", {})
+    for key, kept, what in (("speeds_mm_s", scene.speeds_mm_s, "speeds"),
+                            ("directions_deg", scene.directions_deg, "directions (modulo 180 deg)")):
+        if key in motion and len(kept) < len(motion[key]):
+            LOG.warning("%s: motion.%s: %d values, %d distinct %s: those are the nodes", source, key,
+                        len(motion[key]), len(kept), what)
+    return scene
 
 
 def read_scene(path: str | Path) -> Scene:

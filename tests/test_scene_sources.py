@@ -75,6 +75,25 @@ def test_the_largest_array_a_scene_may_have_is_the_largest_the_player_drives():
         parse_scene(f"[array]\ngrid = {{ rows = {side}, cols = {side + 1}, pitch_mm = 0.5 }}\n", "s.toml")
 
 
+def test_repeated_explicit_nodes_are_merged_and_said(monkeypatch, caplog):
+    # [10, 10, 40] mm/s were two speed nodes and 0, 180, 90, -90, 45 deg three directions (a
+    # direction and its reverse are one), without a word.
+    import logging
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    text = "[motion]\nspeeds_mm_s = [10, 10, 40]\ndirections_deg = [0, 180, 90, -90, 45]\n"
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        scene = parse_scene(text, "s.toml")
+    assert scene.speeds_mm_s == (10.0, 40.0) and scene.directions_deg == (0.0, 45.0, 90.0)
+    assert [r.getMessage() for r in caplog.records] == [
+        "s.toml: motion.speeds_mm_s: 3 values, 2 distinct speeds: those are the nodes",
+        "s.toml: motion.directions_deg: 5 values, 3 distinct directions (modulo 180 deg): those are the nodes"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="haptex"):
+        parse_scene("[motion]\nspeeds_mm_s = [10, 40]\ndirections_deg = [0, 90]\n", "s.toml")
+    assert not caplog.records
+
+
 def test_grid_contactors_order_and_pitch():
     c = grid_contactors(2, 3, 1.5)
     np.testing.assert_allclose(c[:3, 1], -0.75)
