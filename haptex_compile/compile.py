@@ -428,6 +428,28 @@ def _halvings_left(plan: NodePlan, grid: TableGrid, surface: Surface) -> dict[st
     return left
 
 
+# Pixels finer than this fraction of the finest felt wavelength are warned of (their cost).
+FINE_PIXEL_FRACTION = 0.25
+
+
+def fine_pixel_note(pixel_size_um: float, scene: Scene, model: TwoColourModel) -> str | None:
+    """A note when pixels of `pixel_size_um` are far finer than the scene can make felt, else None.
+
+    The finest wavelength a stroke can turn into felt vibration is the slowest speed over the
+    band's top (10 mm/s / 800 Hz = 12.5 um by default); the tables sample lines a pixel apart,
+    so their time grows as 1 / pixel² (a 64 px map of 0.5 um pixels took 142 s, of 0.1 um over
+    300 s). Finer detail counts only where a stroke crosses it nearly side-on.
+    """
+    slowest = min(scene.speeds_mm_s) if scene.speeds_mm_s else scene.speed_range_mm_s[0]
+    finest_um = 1000.0 * slowest / model.band.high_stop_hz
+    if pixel_size_um >= FINE_PIXEL_FRACTION * finest_um:
+        return None
+    return (f"pixels of {pixel_size_um:g} um are {finest_um / pixel_size_um:.0f} x finer than the finest wavelength"
+            f" the scene can make felt ({finest_um:.3g} um: {slowest:g} mm/s at {model.band.high_stop_hz:g} Hz); the"
+            f" tables' time grows as 1 / pixel size squared: resampled to about {FINE_PIXEL_FRACTION * finest_um:.2g} um,"
+            " the map would compile far faster for little that is felt")
+
+
 def build_checked_tables(surface: Surface, model: TwoColourModel, settings: AnalysisSettings, scene: Scene,
                          seed: int = 0, progress: Callable[[str], None] | None = None) -> tuple[Tables, dict[str, Any], NodePlan]:
     """Build tables, measure their error and refine nodes until the scene's tolerance is met.
@@ -559,6 +581,9 @@ def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, se
     model = model_for(scene)
     settings = settings_for(scene)
     pixel_mm = source.surface.pixel_size_mm
+    note = fine_pixel_note(source.surface.pixel_size_um, scene, model)
+    if note is not None:
+        LOG.warning("%s: %s", source.name, note)
     if scene.grid_spacing_mm is not None and scene.grid_spacing_mm < pixel_mm:  # (initial_plan's floor)
         LOG.warning("%s: the scene's grid_spacing_mm %g is below the surface's pixel size: table nodes are one"
                     " pixel (%g mm) apart", source.name, scene.grid_spacing_mm, pixel_mm)

@@ -288,3 +288,20 @@ def test_a_grid_spacing_below_the_pixel_is_warned_of(tmp_path, monkeypatch, capl
         spacing_mm = read_asset(tmp_path / "a.tact.h5").tables.grid_spacing_mm
         extent_mm = 23 * 0.02  # a non-periodic map's nodes span its first to its last pixel
         assert spacing_mm == pytest.approx(extent_mm / round(extent_mm / max(spacing, 0.02)))
+
+
+def test_pixels_far_finer_than_the_scene_can_feel_are_noted():
+    # A 64 px map of 0.5 um pixels took 142 s to compile, of 0.1 um over 300 s, without a word
+    # on why; the finest felt wavelength is the slowest speed over the band's top.
+    from haptex_compile.colours import TwoColourModel
+    from haptex_compile.compile import fine_pixel_note
+
+    model = TwoColourModel()
+    assert model.band.high_stop_hz == 800.0
+    default = default_scene()  # 10 mm/s: 12.5 um, noted below a quarter of it
+    assert fine_pixel_note(3.2, default, model) is None
+    note = fine_pixel_note(0.5, default, model)
+    assert note.startswith("pixels of 0.5 um are 25 x finer than the finest wavelength the scene can make felt"
+                           " (12.5 um: 10 mm/s at 800 Hz)") and "resampled to about 3.1 um" in note
+    slow40 = parse_scene("[motion]\nspeeds_mm_s = [80, 40]\n", "s.toml")  # 50 um
+    assert fine_pixel_note(12.5, slow40, model) is None and fine_pixel_note(12.0, slow40, model) is not None
