@@ -130,16 +130,17 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
         raise click.UsageError("give exactly one of -o/--output or --out-dir")
     if output is not None and len(inputs) != 1:
         raise click.UsageError("-o/--output takes one input; use --out-dir for several")
+    for spec in inputs:
+        input_kind(spec)  # unknown types fail before any work
     if exr_path is None:
         warn_ignored_options(["exr_speed", "exr_direction"], "--exr")
     if relief_um is None:
-        warn_ignored_options(["relief_kind"], "--relief-um")
+        if any(input_kind(s) == "image" for s in inputs):  # (other inputs' sources say it of every photo option)
+            warn_ignored_options(["relief_kind"], "--relief-um")
     elif kes is not None:  # (--relief-um was used and the Kawabata file's SMD ignored)
         raise click.UsageError("--relief-um and --kes both set a photo's height scale: give one")
     if exr_path is not None and len(inputs) != 1:
         raise click.UsageError("--exr takes one input")
-    for spec in inputs:
-        input_kind(spec)  # unknown types fail before any work
     scene = read_scene(scene_path) if scene_path else default_scene()
     options = SourceOptions(pixel_size_um=pixel_size, relief_um=relief_um, relief_kind=relief_kind, sfs=sfs,
                             light=light, kes_path=kes, roughness=roughness, seed=seed)
