@@ -469,6 +469,23 @@ def _decode(data: bytes, flags: int) -> tuple[np.ndarray | None, list[str]]:
         cv2.utils.logging.setLogLevel(level)
 
 
+def _warn_transparency(path: str | Path, data: bytes) -> None:
+    """Warn when an image with an alpha channel has pixels that are not opaque: alpha is
+    dropped, so a swatch cut out on a transparent background was compiled with its background's
+    colour values as texture, without a word."""
+    try:
+        pixels, _ = _decode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # (decoded once already: the image itself is read)
+        return
+    if pixels is None or pixels.ndim != 3 or pixels.shape[2] not in (2, 4):
+        return
+    alpha = pixels[:, :, -1]
+    clear = float(np.mean(alpha < np.iinfo(alpha.dtype).max))
+    if clear > 0:
+        LOG.warning("%s: %.3g%% of its pixels are transparent or partly so: transparency is ignored (their colour"
+                    " values are compiled as texture); crop to the fabric", path, 100 * clear)
+
+
 def _to_grey(pixels: np.ndarray) -> np.ndarray:
     """Decoded uint8/uint16 pixels (grey, BGR or BGRA) -> float64 luma in [0, 1]."""
     scale = 1.0 / float(np.iinfo(pixels.dtype).max)
@@ -560,6 +577,8 @@ def read_image(path: str | os.PathLike, *, max_pixels: int = 200_000_000) -> Ima
         if pixels.shape[:2] not in ((h, w), (w, h)):  # (w, h): EXIF orientation applied
             raise _Bad(f"decoded {pixels.shape[1]} x {pixels.shape[0]} pixels but the header "
                        f"says {w} x {h} (corrupt file)")
+        if header.channels in (2, 4) and fmt != "JPEG":  # (a 4-channel JPEG is CMYK)
+            _warn_transparency(path, data)
         if pixels.dtype == np.uint8:
             bit_depth = 8
         elif pixels.dtype == np.uint16:

@@ -894,3 +894,30 @@ def test_text_inputs_that_cannot_be_read_are_one_line_in_one_wording(tmp_path, n
     # UTF-8 with a byte-order mark (as some spreadsheet exports write) is read.
     path.write_bytes(b"\xef\xbb\xbf" + valid.encode())
     reader(path)
+
+
+def test_transparent_pixels_are_warned_of(tmp_path, monkeypatch, caplog):
+    # Alpha is dropped: a swatch cut out on a transparent background was compiled with the
+    # background's colour values as texture, without a word.
+    import logging
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)  # the CLI tests turn it off
+    grey = (np.random.default_rng(0).random((40, 50)) * 255).astype(np.uint8)
+    bgra = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)
+    for name, clear_rows in (("opaque.png", 0), ("cut.png", 10)):
+        bgra[:, :, 3] = 255
+        bgra[:clear_rows, :, 3] = 0
+        bgra[clear_rows:clear_rows + 1, 0, 3] = 128 if clear_rows else 255  # one pixel partly transparent
+        cv2.imwrite(str(tmp_path / name), bgra)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="haptex"):
+            image = read_image(tmp_path / name)
+        assert image.channels == 4
+        np.testing.assert_allclose(image.grey, grey / 255.0, atol=1e-12)  # the colour values, as before
+        said = [r.getMessage() for r in caplog.records]
+        if clear_rows:
+            share = 100 * (clear_rows * 50 + 1) / (40 * 50)
+            assert said == [f"{tmp_path / name}: {share:.3g}% of its pixels are transparent or partly so: transparency"
+                            " is ignored (their colour values are compiled as texture); crop to the fabric"]
+        else:
+            assert said == []
