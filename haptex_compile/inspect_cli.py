@@ -9,7 +9,7 @@ import click
 import numpy as np
 
 from playback.cli_common import EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, warn_ignored_options
-from playback.errors import InputError, shown_text as _shown
+from playback.errors import HaptexError, InputError, one_line, shown_text as _shown
 
 
 def _upper(tables) -> str:
@@ -248,7 +248,6 @@ def main(files, validate, plot_path, speed, direction):
         click.echo(f"wrote {plot_path}")
         return
     from playback.asset import refuse_crashing
-    from playback.errors import HaptexError, one_line
 
     # Every file is summarised, a bad one in one line, as --validate checks every one (the
     # first bad file ended the run: `haptex-inspect *.tact.h5` stopped there).

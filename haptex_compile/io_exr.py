@@ -9,8 +9,8 @@ inputs give byte-identical files (EXR stores no time stamp).
 from __future__ import annotations
 
 import contextlib
-import logging
 import io
+import logging
 import os
 import tempfile
 from pathlib import Path
@@ -207,15 +207,16 @@ def _utf8_name(p: Path) -> bool:
     return True
 
 
-def _readable(p: Path) -> str | io.BytesIO:
-    """What the OpenEXR binding reads file `p` from: its name, or its bytes (see
-    :func:`_utf8_name`)."""
-    return str(p) if _utf8_name(p) else io.BytesIO(p.read_bytes())
-
-
 def _read_channels(p: Path, path: str | os.PathLike, max_pixels: int) -> dict[str, np.ndarray]:
     """:func:`read_exr_channels` past its checks of the path and the magic number."""
-    head = OpenEXR.File(_readable(p), header_only=True)
+    # The binding reads the file by its name, or from its bytes (read once) where it cannot
+    # take the name (see _utf8_name).
+    data = None if _utf8_name(p) else p.read_bytes()
+
+    def source() -> str | io.BytesIO:
+        return str(p) if data is None else io.BytesIO(data)
+
+    head = OpenEXR.File(source(), header_only=True)
     if len(head.parts) != 1:
         raise InputError(path, f"multi-part EXR ({len(head.parts)} parts) is not supported; "
                                "write a single-part file")
@@ -238,7 +239,7 @@ def _read_channels(p: Path, path: str | os.PathLike, max_pixels: int) -> dict[st
         if channel.xSampling != 1 or channel.ySampling != 1:
             raise InputError(path, f"EXR channel {channel.name!r} is sub-sampled "
                                    f"({channel.xSampling} x {channel.ySampling}); not supported")
-    full = OpenEXR.File(_readable(p), separate_channels=True)
+    full = OpenEXR.File(source(), separate_channels=True)
     result: dict[str, np.ndarray] = {}
     for name, channel in full.channels().items():
         pixels = channel.pixels

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from haptex_compile.errors import InputError
-from haptex_compile.sources import SourceOptions, SourceResult, _pixel_size
+from haptex_compile.sources import SourceOptions, SourceResult, _pixel_size, not_applying
 from haptex_compile.surface import Surface
 
 LOG = logging.getLogger("haptex.photo")
@@ -234,10 +234,10 @@ def photo_surface(grey: np.ndarray, pixel_size_um: float, options: SourceOptions
         rms = float(np.std(h))
         ignored = [flag for flag, given in (("--light", options.light is not None), ("--sfs", options.sfs != "default"),
                                             ("--roughness none", options.roughness == "none")) if given]
-        if ignored:
-            LOG.warning("%s: %s %s not apply: the photo has no credible lattice, and its surface is a Brownian"
-                        " surface of its roughness, not heights from shading: ignored", spec, ", ".join(ignored),
-                        "does" if len(ignored) == 1 else "do")
+        said = not_applying(spec, ignored, ": the photo has no credible lattice, and its surface is a Brownian surface"
+                                           " of its roughness, not heights from shading")
+        if said is not None:
+            LOG.warning("%s", said)
         report["surface"] = f"not periodic ({lattice.reason}): Brownian surface, H = {hurst:.3f} (D = {3 - hurst:.3f}) from the photo"
         return SourceResult(Surface(h, pixel_size_um, False), "photo", spec, report,
                             roughness={"hurst": hurst, "dimension": 3.0 - hurst, "rms_um": rms},

@@ -167,6 +167,14 @@ _PHOTO_ONLY = (("relief_um", "--relief-um", None), ("relief_kind", "--relief-kin
                ("light", "--light", None), ("kes_path", "--kes", None), ("roughness", "--roughness", "auto"))
 
 
+def not_applying(spec: str, flags: list[str], why: str) -> str | None:
+    """The warning that options `flags` given for input `spec` do not apply to it (`why`: how
+    the sentence goes on, e.g. " to a height map"), or None when there are none."""
+    if not flags:
+        return None
+    return f"{spec}: {', '.join(flags)} {'does' if len(flags) == 1 else 'do'} not apply{why}: ignored"
+
+
 def _warn_ignored(spec: str, kind: str, options: SourceOptions) -> None:
     """One warning naming the options given that do not apply to this kind of input (they were
     ignored silently: a Brownian spec with --pixel-size 10um kept the spec's 20 um)."""
@@ -176,11 +184,11 @@ def _warn_ignored(spec: str, kind: str, options: SourceOptions) -> None:
         ignored.append("--seed")
     if kind == "brownian" and options.pixel_size_um is not None:
         ignored.append("--pixel-size")
-    if ignored:
-        names = {"brownian": "Brownian spec (its pixel= and seed= set those)", "heightmap": "height map",
-                 "kes": "Kawabata file"}
-        LOG.warning("%s: %s %s not apply to a %s: ignored", spec, ", ".join(ignored),
-                    "does" if len(ignored) == 1 else "do", names.get(kind, kind))
+    names = {"brownian": "Brownian spec (its pixel= and seed= set those)", "heightmap": "height map",
+             "kes": "Kawabata file"}
+    said = not_applying(spec, ignored, f" to a {names.get(kind, kind)}")
+    if said is not None:
+        LOG.warning("%s", said)
 
 
 def load_source(spec: str, options: SourceOptions) -> SourceResult:
