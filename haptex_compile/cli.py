@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import click
 
 from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
                                  show_progress, warn_ignored_options)
+from playback.stop_signals import STOP_SIGNALS, StopRequested, exit_status
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -70,11 +72,37 @@ def _dependencies(spec: str, scene_path: str | None, kes: str | None, scene) -> 
     return deps
 
 
+_IN_WORKER = False  # this process is a --jobs worker (see _init_worker)
+_COMPILING = False  # and is compiling an input
+
+
+def _worker_stop(signum: int, frame: object) -> None:
+    """SIGTERM or SIGHUP in a --jobs worker: the compile under way stops as Ctrl-C stops it
+    (its temporary files removed; :func:`_one` then ends the worker, which would otherwise take
+    the next input); an idle worker, waiting for work, exits at once (raising there would
+    print multiprocessing's traceback)."""
+    if _COMPILING:
+        raise StopRequested(signal.Signals(signum).name)
+    os._exit(128 + signum)
+
+
+def _init_worker() -> None:
+    global _IN_WORKER
+    _IN_WORKER = True
+    # Ctrl-C reaches the whole process group: the parent alone handles it, and stops the workers.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for name in STOP_SIGNALS:
+        if hasattr(signal, name) and signal.getsignal(getattr(signal, name)) is not signal.SIG_IGN:
+            signal.signal(getattr(signal, name), _worker_stop)
+
+
 def _one(job: dict) -> tuple[str, str | None]:
     """Compile one input (runs in a worker process for --jobs); returns (input, error line or None)."""
     from playback.errors import HaptexError, one_line, shown_text
     from haptex_compile.compile import compile_source
 
+    global _COMPILING
+    _COMPILING = True
     try:
         compile_source(job["spec"], job["out"], job["scene"], job["options"], exr_path=job["exr"],
                        exr_speed=job["exr_speed"], exr_direction=job["exr_direction"])
@@ -88,6 +116,24 @@ def _one(job: dict) -> tuple[str, str | None]:
         # The message names the input (several may be compiled in one run), as it shows it.
         spec = shown_text(job["spec"], limit=None)
         return job["spec"], message if spec in message else f"{spec}: {message}"
+    except KeyboardInterrupt as exc:  # (in a worker: a stop signal, see _worker_stop)
+        if _IN_WORKER:
+            os._exit(exit_status(exc))  # its files are cleaned up; it takes no further input
+        raise
+    finally:
+        _COMPILING = False
+
+
+def _worker_result(job: dict, future) -> tuple[str, str | None]:
+    """:func:`_one`'s result from a --jobs worker; a worker that died (killed, or out of
+    memory) fails its input and those queued behind it in one line each, not a traceback."""
+    from concurrent.futures.process import BrokenProcessPool
+    from playback.errors import shown_text
+
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        return job["spec"], f"{shown_text(job['spec'], limit=None)}: not compiled: a worker process stopped (killed, or out of memory)"
 
 
 @command()
@@ -166,8 +212,20 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     if jobs > 1 and len(jobs_list) > 1:
         from concurrent.futures import ProcessPoolExecutor  # here: multiprocessing costs start-up time
 
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            results = list(pool.map(_one, jobs_list))
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker) as pool:
+            try:
+                results = [_worker_result(job, future) for job, future in
+                           zip(jobs_list, [pool.submit(_one, job) for job in jobs_list])]
+            except BaseException:
+                # Stopped (or failed): the inputs not begun are dropped, and the workers told to
+                # stop theirs, which they do as this process would (shutdown alone would compile
+                # every input queued before returning). The pool's process table is private:
+                # without it the workers finish their inputs.
+                processes = list((getattr(pool, "_processes", None) or {}).values())  # (shutdown clears it)
+                pool.shutdown(wait=False, cancel_futures=True)
+                for process in processes:
+                    process.terminate()
+                raise
     else:
         results = []
         bar = click.progressbar(jobs_list, label="compiling", file=sys.stderr) if show_progress() and len(jobs_list) > 1 else None

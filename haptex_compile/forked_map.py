@@ -32,6 +32,8 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import TypeVar
 
+from playback.stop_signals import exit_on_stop_signals
+
 LOG = logging.getLogger("haptex.forked_map")
 T = TypeVar("T")
 U = TypeVar("U")
@@ -55,6 +57,7 @@ def _set_fn(fn: Callable) -> None:
     # Ctrl-C reaches the whole process group: the caller stops the pool, and a worker
     # interrupted on its own would only break it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_on_stop_signals()
 
 
 def _call(args: tuple):
@@ -135,6 +138,7 @@ def _fork_child(there: Callable[[], object]) -> tuple[int, int] | None:
     try:
         os.close(read_fd)
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
+        exit_on_stop_signals()
         try:
             payload = pickle.dumps((True, there()), pickle.HIGHEST_PROTOCOL)
         except BaseException as exc:  # noqa: BLE001 - handed to the parent

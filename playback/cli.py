@@ -1,6 +1,7 @@
 """``haptex-play``: stream a tactile asset to the stimulator (or its emulator) along a trajectory."""
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 
@@ -46,8 +47,8 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
     """Play ASSET (a .tact.h5 tactile asset) on a vibrotactile array.
 
     Frames are scheduled every frame period (25 ms) on the monotonic clock. The default device is
-    the emulator (sim), run in real time; add --fast for an unpaced dry run. Ctrl-C sends an
-    all-zero frame and exits 0.
+    the emulator (sim), run in real time; add --fast for an unpaced dry run. Ctrl-C (or SIGTERM,
+    SIGHUP) sends an all-zero frame, finishes the record and exits 0.
     """
     from playback.asset import read_asset
     from playback.clock import MonotonicClock, VirtualClock
@@ -98,16 +99,18 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         source = LiveSource(sys.stdin, name="stdin")
     clock = VirtualClock() if fast else MonotonicClock()
     transport, emulator = make_transport(device, profile, clock)
-    recorder = None
-    if record_path is not None:
-        from playback import protocol
+    with contextlib.ExitStack() as stack:
+        recorder = None
+        if record_path is not None:
+            from playback import protocol
 
-        recorder = Recorder(record_path, data.n_contactors, profile.n_channels,
-                            protocol.frame_size(profile.n_channels))
-    player = Player(data, profile, transport, source, clock=clock, mode=mode, recorder=recorder,
-                    lead_ms=lead_ms, prep_ms=prep_ms, realtime=realtime and not fast, max_frames=max_frames,
-                    emulator=emulator, waveform_rate_hz=waveform_rate if waveforms else None)
-    summary = player.run()
+            # (a run that fails before the record is finished leaves no temporary file)
+            recorder = stack.enter_context(Recorder(record_path, data.n_contactors, profile.n_channels,
+                                                    protocol.frame_size(profile.n_channels)))
+        player = Player(data, profile, transport, source, clock=clock, mode=mode, recorder=recorder,
+                        lead_ms=lead_ms, prep_ms=prep_ms, realtime=realtime and not fast, max_frames=max_frames,
+                        emulator=emulator, waveform_rate_hz=waveform_rate if waveforms else None)
+        summary = player.run()
     click.echo(f"haptex-play: {summary.line()}")
     if record_path is not None:
         click.echo(f"haptex-play: recorded {record_path}")

@@ -3,7 +3,10 @@
 ``-v/-q`` set the log level, ``--debug`` shows tracebacks. Expected failures
 (:class:`~playback.errors.HaptexError`, ``OSError``) become one line on stderr and exit
 status 1; usage errors (a bad option value, a missing argument) are one line too and exit 2
-(click's convention). Progress bars are shown only when stderr is a terminal.
+(click's convention). SIGTERM and SIGHUP stop a command as Ctrl-C does
+(:mod:`playback.stop_signals`); an interrupt the command does not handle itself is one line
+and the shell's status for the signal (130 for Ctrl-C, 143 for SIGTERM). Progress bars are
+shown only when stderr is a terminal.
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ import click
 
 from playback.errors import HaptexError, one_line
 from playback.paths import check_folders, check_replaceable
+from playback.stop_signals import exit_status, stop_reason, stop_signals_raise
 
 LOG = logging.getLogger("haptex")
 EXIT_BAD_INPUT = 1
@@ -88,12 +92,20 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
         if wants_debug:
             kwargs["debug"] = debug
         try:
-            return func(*args, **kwargs)
+            with stop_signals_raise():
+                return func(*args, **kwargs)
         except (HaptexError, OSError) as exc:
             if debug:
                 raise
             click.echo(f"{click.get_current_context().info_name}: error: {one_line(exc)}", err=True)
             sys.exit(EXIT_BAD_INPUT)
+        except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM or SIGHUP, not handled by the command
+            if debug:
+                raise
+            # one line (click's own is "Aborted!" after an empty line, status 1), and the shell's
+            # status for the signal, so a batch (make) sees the run was stopped, not failed
+            click.echo(f"{click.get_current_context().info_name}: error: interrupted by {stop_reason(exc)}", err=True)
+            sys.exit(exit_status(exc))
 
     return wrapper
 

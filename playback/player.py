@@ -13,8 +13,9 @@ and a young-generation collection runs only in the slack after a send), HDF5 rec
 flushed only in that slack, and on request the process asks for real-time scheduling
 (``SCHED_FIFO``, else a lower nice value), falling back silently when not permitted.
 
-Safety: every exit path (end of trajectory, Ctrl-C, device error) sends an all-zero frame when it
-can; the controller's time-to-live stops the outputs anyway if the host disappears.
+Safety: every exit path (end of trajectory, Ctrl-C or another stop signal, device error) sends an
+all-zero frame when it can, with further stop signals held back until it and the record are
+done; the controller's time-to-live stops the outputs anyway if the host disappears.
 """
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ from playback import protocol
 from playback.asset import Asset
 from playback.errors import DeviceError, InputError
 from playback.interp import RigidArrayLookup, table_amplitudes
+from playback.stop_signals import deferred, stop_reason
 from playback.trajectory import LiveSource, MotionState, SampledTrajectory, contactor_kinematics
 
 LOG = logging.getLogger("haptex.play")
@@ -325,7 +327,9 @@ class Player:
         """Play until the trajectory ends, ``max_frames``, EOF, Ctrl-C or a device error.
 
         Returns the summary; a :class:`DeviceError` is re-raised after the zero frame attempt and
-        the record are done. Ctrl-C returns normally with ``summary.interrupted`` set.
+        the record are done. Ctrl-C (any ``KeyboardInterrupt``: SIGTERM and SIGHUP raise one
+        under :func:`playback.stop_signals.stop_signals_raise`) returns normally with
+        ``summary.interrupted`` set and the signal in ``summary.stopped_by``.
         """
         s = self.summary
         T = self.frame_s
@@ -345,6 +349,8 @@ class Player:
         error: DeviceError | None = None
         t_first = None
         rt = contextlib.ExitStack()
+        stopping = contextlib.ExitStack()  # stop signals held back while the run ends
+        held: list[str] | None = None
         try:
             try:
                 if not live and isinstance(self.renderer, DirectRenderer):
@@ -460,13 +466,16 @@ class Player:
                         break
                 if self.max_frames is not None and k >= self.max_frames:
                     s.stopped_by = "frame limit"
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM/SIGHUP (playback.stop_signals)
+                held = stopping.enter_context(deferred())
                 s.interrupted = True
-                s.stopped_by = "Ctrl-C"
-                LOG.warning("interrupted: sending an all-zero frame and stopping")
+                s.stopped_by = stop_reason(exc)
+                LOG.warning("interrupted by %s: sending an all-zero frame and stopping", s.stopped_by)
             except DeviceError as exc:
                 error = exc
                 s.stopped_by = f"device error: {exc}"
+            # From here the stop must finish: a second Ctrl-C would cut the zero frame or the record.
+            held = held if held is not None else stopping.enter_context(deferred())
             # Leave nothing vibrating: an explicit all-zero frame (TTL is the backstop).
             s.zero_frame_sent = self._send_zero()
             rt.close()  # normal priority and the garbage collector back before the status and the record
@@ -477,6 +486,7 @@ class Player:
                 except DeviceError as exc:
                     LOG.warning("status read failed: %s", exc)
         finally:
+            held = held if held is not None else stopping.enter_context(deferred())
             rt.close()
             s.retries = getattr(self.transport, "retries", 0)
             s.bad_samples = dict(self.source.estimator.counts if live else self.source.counts)
@@ -500,8 +510,13 @@ class Player:
                 s.duration_s = self.clock.now() - t_first
             if self.recorder is not None:
                 self.recorder.hold = False
-            self._finish_record()
-            self.transport.close()
+            try:
+                self._finish_record()
+                self.transport.close()
+            finally:
+                stopping.close()
+        if held:  # the run had ended, or was ending, when they came: nothing more to stop
+            LOG.info("%s while stopping: ignored", ", ".join(dict.fromkeys(held)))
         if error is not None:
             raise error
         return s

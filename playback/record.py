@@ -94,6 +94,7 @@ class Recorder:
         self.max_pending = 8 * chunk  # bounds the memory held while flushes are deferred
         self._buf: dict[str, list[Any]] = {k: [] for k in spec}
         self.n = 0
+        self.closed = False  # renamed into place by close()
         self.set_attrs(attrs or {})
         self.file.attrs["format"] = RECORD_FORMAT
         self.file.attrs["format_version"] = RECORD_VERSION
@@ -153,6 +154,7 @@ class Recorder:
             self.set_attrs(attrs)
         self.file.close()
         os.replace(self.tmp, self.path)
+        self.closed = True
         return self.path
 
     def abort(self) -> None:
@@ -161,3 +163,12 @@ class Recorder:
             self.file.close()
         finally:
             self.tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        """A record not closed by then is unfinished (the run failed before it, or was stopped
+        before it began): its temporary file is deleted, not left beside the record's name."""
+        if not self.closed:
+            self.abort()

@@ -140,3 +140,31 @@ def test_call_beside_with_sigchld_ignored_still_answers(monkeypatch):
     finally:
         signal.signal(signal.SIGCHLD, previous)
     assert failures == []
+
+
+@linux
+@pytest.mark.parametrize("kind", ["forked_map", "call_beside"])
+def test_a_worker_sent_sigterm_ends_quietly_and_the_caller_goes_on(kind, caplog, monkeypatch):
+    """Under the tools' stop signals (SIGTERM raises in the caller: playback.stop_signals), a
+    worker sent SIGTERM on its own ends, and its calls run in the caller; before, the worker
+    inherited the raising handler and its StopRequested stopped the caller as if it had been sent
+    the signal."""
+    from playback.stop_signals import stop_signals_raise
+
+    monkeypatch.setattr(logging.getLogger("haptex"), "propagate", True)
+    parent = os.getpid()
+
+    def fn(i):
+        if os.getpid() != parent and i == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(100):  # (the handler runs between bytecodes)
+                threading.Event().wait(0.001)
+        return i * i
+
+    with stop_signals_raise():
+        if kind == "forked_map":
+            with forked_map(fn, 2) as map_:
+                assert map_([(i,) for i in range(5)]) == [0, 1, 4, 9, 16]
+        else:
+            assert call_beside(lambda: fn(1), lambda: fn(2), 2) == (1, 4)
+    assert "failed" in caplog.text
