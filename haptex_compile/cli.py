@@ -12,7 +12,7 @@ import click
 
 from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
                                  show_progress, warn_ignored_options)
-from playback.stop_signals import STOP_SIGNALS, StopRequested, exit_status
+from playback.stop_signals import STOP_SIGNALS, StopRequested, end_with_parent, exit_status
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -86,7 +86,7 @@ def _worker_stop(signum: int, frame: object) -> None:
     os._exit(128 + signum)
 
 
-def _init_worker() -> None:
+def _init_worker(parent_pid: int) -> None:
     global _IN_WORKER
     _IN_WORKER = True
     # Ctrl-C reaches the whole process group: the parent alone handles it, and stops the workers.
@@ -94,6 +94,7 @@ def _init_worker() -> None:
     for name in STOP_SIGNALS:
         if hasattr(signal, name) and signal.getsignal(getattr(signal, name)) is not signal.SIG_IGN:
             signal.signal(getattr(signal, name), _worker_stop)
+    end_with_parent(parent_pid)  # a parent killed outright (SIGKILL) stops its workers too
 
 
 def _one(job: dict) -> tuple[str, str | None]:
@@ -212,7 +213,7 @@ def main(inputs, output, out_dir, scene_path, pixel_size, relief_um, relief_kind
     if jobs > 1 and len(jobs_list) > 1:
         from concurrent.futures import ProcessPoolExecutor  # here: multiprocessing costs start-up time
 
-        with ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
             try:
                 results = [_worker_result(job, future) for job, future in
                            zip(jobs_list, [pool.submit(_one, job) for job in jobs_list])]

@@ -32,7 +32,7 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import TypeVar
 
-from playback.stop_signals import exit_on_stop_signals
+from playback.stop_signals import end_with_parent, exit_on_stop_signals
 
 LOG = logging.getLogger("haptex.forked_map")
 T = TypeVar("T")
@@ -51,13 +51,14 @@ def worker_count(processes: int | None = None) -> int:
     return max(1, int(processes))
 
 
-def _set_fn(fn: Callable) -> None:
+def _set_fn(fn: Callable, parent_pid: int) -> None:
     global _FN
     _FN = fn
     # Ctrl-C reaches the whole process group: the caller stops the pool, and a worker
     # interrupted on its own would only break it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     exit_on_stop_signals()
+    end_with_parent(parent_pid)
 
 
 def _call(args: tuple):
@@ -83,7 +84,7 @@ def forked_map(fn: Callable, processes: int | None = None) -> Iterator[Callable[
     # Fork: the workers inherit `fn` as it is (closures included); the initializer's
     # arguments are not pickled under fork.
     pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
-        count, mp_context=multiprocessing.get_context("fork"), initializer=_set_fn, initargs=(fn,))
+        count, mp_context=multiprocessing.get_context("fork"), initializer=_set_fn, initargs=(fn, os.getpid()))
 
     def map_(items):
         nonlocal pool

@@ -190,3 +190,26 @@ def test_compile_jobs_worker_killed_fails_inputs_in_one_line_each(tmp_path):
     code, out, err = _finish(proc)
     lines = [line for line in err.splitlines() if "INFO" not in line]
     assert code == 1 and len(lines) == 2 and all("a worker process stopped" in line for line in lines), err
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) is Linux's")
+def test_compile_jobs_parent_killed_outright_stops_its_workers(tmp_path):
+    """SIGKILL cannot be passed on: before, the orphaned workers compiled every queued input and
+    then waited for work for ever."""
+    names = ["satin", "denim_twill", "wool_suiting"]
+    proc = _start(["haptex-compile", *(str(KES / f"{n}.kes.json") for n in names), "--out-dir", "o", "-j", "2",
+                   "-v"], tmp_path, "surface in")
+    workers = [int(p) for p in subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()]
+    assert len(workers) == 2
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 10.0
+    alive = workers
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.1)
+        alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
+                 and Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"]
+    assert not alive
+    assert not (tmp_path / "o").exists() or list((tmp_path / "o").iterdir()) == []  # temporary files removed
+    proc.stdout.close()
+    proc.stderr.close()
