@@ -231,14 +231,10 @@ def _outcome(tool: str, rc: int | None, stderr: str, new_outputs: list[Path]) ->
         bool(OWN_LINE.match(line)) for line in lines) else ("refused in many lines", said)
 
 
-def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
-    """Run `case` in the new `folder`, with the tools of `code_dir` (None: the installed ones)."""
-    name, expected, tool, args, files = case
-    folder.mkdir()
-    _make(folder, files)
-    before = set(folder.iterdir())
+def tool_command(tool: str, code_dir: Path | None = None) -> tuple[list[str], dict[str, str]]:
+    """The command line (before the tool's arguments) and environment that run `tool` as its
+    console script does, with the tools of the checkout `code_dir` (None: the installed ones)."""
     code = f"import sys; from {TOOLS[tool]} import main; sys.argv[0] = {tool!r}; main()"
-    argv = [a.replace("{d}", str(folder)) for a in args]
     env = dict(os.environ)
     if code_dir is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(code_dir), *filter(None, [env.get("PYTHONPATH")])])
@@ -249,9 +245,20 @@ def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
                 f" {folder_s + '/__init__.py'!r}, submodule_search_locations=[{folder_s!r}]);"
                 " module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module);"
                 " sys.modules['haptex_compile.schemas'] = module; " + code)
+    return [sys.executable, "-c", code], env
+
+
+def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
+    """Run `case` in the new `folder`, with the tools of `code_dir` (None: the installed ones)."""
+    name, expected, tool, args, files = case
+    folder.mkdir()
+    _make(folder, files)
+    before = set(folder.iterdir())
+    command, env = tool_command(tool, code_dir)
+    argv = [a.replace("{d}", str(folder)) for a in args]
     t0 = time.perf_counter()
     try:
-        r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=folder,
+        r = subprocess.run([*command, *argv], capture_output=True, text=True, cwd=folder,
                            timeout=TIME_LIMIT_S, errors="replace", env=env)
         rc, stderr = r.returncode, r.stderr
     except subprocess.TimeoutExpired as exc:
