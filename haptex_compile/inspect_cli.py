@@ -256,6 +256,8 @@ def main(files, validate, plot_path, speed, direction):
         try:
             refuse_crashing(path)  # before this process opens it: a corrupt file may crash libhdf5
             click.echo(record_summary(path) if is_playback_record(path) else summary(path))
+        except BrokenPipeError:  # stdout's reader left: no file after this one can be shown
+            raise
         except (HaptexError, OSError) as exc:
             bad += 1
             click.echo(f"haptex-inspect: error: {one_line(exc)}", err=True)

@@ -5,8 +5,9 @@
 status 1; usage errors (a bad option value, a missing argument) are one line too and exit 2
 (click's convention). SIGTERM and SIGHUP stop a command as Ctrl-C does
 (:mod:`playback.stop_signals`); an interrupt the command does not handle itself is one line
-and the shell's status for the signal (130 for Ctrl-C, 143 for SIGTERM). Progress bars are
-shown only when stderr is a terminal.
+and the shell's status for the signal (130 for Ctrl-C, 143 for SIGTERM); a closed stdout (the
+reader of a pipe gone) ends a command quietly with status 141, as SIGPIPE ends other tools.
+Progress bars are shown only when stderr is a terminal.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import inspect
 import logging
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -94,6 +96,14 @@ def common_options(func: Callable[..., Any]) -> Callable[..., Any]:
         try:
             with stop_signals_raise():
                 return func(*args, **kwargs)
+        except BrokenPipeError:
+            if debug:
+                raise
+            # The reader of stdout left (``haptex-inspect *.tact.h5 | head``): stop quietly, as
+            # tools killed by SIGPIPE do, not with an error line per file; stdout is pointed at
+            # the null device so Python's final flush does not complain of it either.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            sys.exit(128 + int(getattr(signal, "SIGPIPE", 13)))
         except (HaptexError, OSError) as exc:
             if debug:
                 raise

@@ -213,3 +213,17 @@ def test_compile_jobs_parent_killed_outright_stops_its_workers(tmp_path):
     assert not (tmp_path / "o").exists() or list((tmp_path / "o").iterdir()) == []  # temporary files removed
     proc.stdout.close()
     proc.stderr.close()
+
+
+def test_inspect_into_a_closed_pipe_stops_quietly(tmp_path, asset_path):
+    """``haptex-inspect *.tact.h5 | head``: once the reader has gone, the tool stops with
+    SIGPIPE's status and nothing on stderr (before: "Broken pipe" as an error line for every
+    file after the pipe filled, and status 1)."""
+    command = [sys.executable, "-c", "import sys; from haptex_compile.inspect_cli import main;"
+               " sys.argv[0] = 'haptex-inspect'; main()", *[str(asset_path)] * 120]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().startswith(str(asset_path))
+    proc.stdout.close()  # as head does after its lines
+    err = proc.stderr.read()
+    proc.wait(timeout=120)
+    assert proc.returncode == 128 + signal.SIGPIPE and err == "", err
