@@ -29,26 +29,24 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import tempfile
 import zlib
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import h5py
 import numpy as np
 
 from haptex_compile import __version__
 from haptex_compile.colours import TwoColourModel
-from haptex_compile.file_modes import new_file_mode
 from haptex_compile.frame_analysis import ANALYSIS_RATE_HZ, AnalysisSettings
 from haptex_compile.scene import Scene
 from haptex_compile.surface import Surface
 from haptex_compile.thresholds import SMOOTHING_HZ
 from haptex_compile.tables import Tables
-from playback.paths import check_replaceable
+from playback.file_modes import new_file_mode
+from playback.paths import check_replaceable, replace_with_bytes
 from playback.text_files import utf8_text
 
 FORMAT_NAME = "haptex-tactile-asset"
@@ -162,20 +160,25 @@ def _table_chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def write_asset(path: str | Path, content: AssetContent) -> None:
-    """Write `content` to `path` atomically (temp file + rename); an error leaves no file."""
+    """Write `content` to `path` atomically (temp file + rename); an error leaves no file.
+
+    The HDF5 file is built in memory and written out in one piece
+    (:func:`playback.paths.replace_with_bytes`): a full disk is then one ``OSError``, where
+    libhdf5 writing into it crashed the process.
+    """
     path = Path(path)
     check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w", track_order=False) as f:
-            _fill(f, content)
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    replace_with_bytes(path, hdf5_image(lambda f: _fill(f, content)), new_file_mode())
+
+
+def hdf5_image(fill: Callable[[h5py.File], None]) -> bytes:
+    """The bytes of a new HDF5 file that `fill` writes, built in memory (the core driver
+    without a backing store)."""
+    with h5py.File(f"haptex-asset-{id(fill)}", "w", driver="core", backing_store=False, track_order=False) as f:
+        fill(f)
+        f.flush()
+        return f.id.get_file_image()
 
 
 def _fill(f: h5py.File, c: AssetContent) -> None:

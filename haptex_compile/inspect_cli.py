@@ -163,6 +163,7 @@ def _record_summary(path: str) -> str:
         scheduling = attr(f, "scheduling")
         scheduling = None if scheduling is None else _shown(scheduling)
         skipped = attr(f, "frames_skipped")
+        not_recorded = attr(f, "frames_not_recorded")
         stopped_by, zero_sent = _shown(attr(f, "stopped_by", "?")), attr(f, "zero_frame_sent")
         asset, version = _shown(attr(f, "asset", "?")), _shown(attr(f, "format_version", "?"))
         err_max = attr(f, "tables_max_rel_error")
@@ -194,6 +195,8 @@ def _record_summary(path: str) -> str:
                    + (f", prep {float(prep_ms):g} ms" if prep_ms is not None else "")
                    + f"\n             send error median {ms(np.median(send_err))} ms, p99 {ms(np.percentile(send_err, 99))} ms, "
                    f"max {ms(send_err.max())} ms; drift {ms(drift)} ms")
+    if not_recorded:
+        lines.append(f"  record     {int(not_recorded)} later frames sent and not recorded (the record's size limit)")
     lines.append(timing)
     lines.append(f"  render     median {np.median(render_us):.0f} us, p99 {np.percentile(render_us, 99):.0f} us, "
                  f"max {render_us.max():.0f} us; latency median {np.median(latency_us):.0f} us, max {latency_us.max():.0f} us")

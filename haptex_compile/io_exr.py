@@ -20,8 +20,8 @@ import numpy as np
 import OpenEXR
 
 from haptex_compile.errors import InputError
-from haptex_compile.file_modes import new_file_mode
 from haptex_compile.native_output import captured_native_output
+from playback.file_modes import new_file_mode
 from playback.paths import check_replaceable
 
 __all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]

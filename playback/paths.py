@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import stat
+import tempfile
 from pathlib import Path
 
 from playback.errors import InputError
@@ -37,3 +38,34 @@ def check_folders(path: str | Path) -> None:
             if not above.is_dir():
                 raise InputError(path, f"cannot be written: {above} is a file, not a folder")
             return
+
+
+def replace_with_bytes(path: str | Path, data: bytes | bytearray | memoryview, mode: int) -> None:
+    """Write `data` to `path` through a temporary file beside it and a rename: `path` holds
+    either its old content or all of `data`, never part of it. The data is on disk (fsync)
+    before the name points at it; the file gets `mode`. Any failure (a full disk, an
+    interrupt) removes the temporary file and is raised; the write's own as
+    :class:`InputError` naming `path` ("cannot be written: No space left on device").
+
+    The tools build HDF5 files in memory and write them out with this: libhdf5 writing into a
+    full disk printed hundreds of lines of tracebacks while closing the file, then crashed the
+    process (segmentation fault), where a plain write raises ``OSError`` (ENOSPC) once.
+    """
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise InputError(path, f"cannot be written: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise InputError(path, f"cannot be written: {exc.strerror or exc}") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

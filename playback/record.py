@@ -27,7 +27,9 @@ written to a temporary name in the same folder and renamed when complete.
 from __future__ import annotations
 
 import json
+import logging
 import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -35,15 +37,23 @@ import h5py
 import numpy as np
 
 from playback.errors import InputError
-from playback.paths import check_replaceable
+from playback.file_modes import new_file_mode
+from playback.paths import check_replaceable, replace_with_bytes
 from playback.text_files import utf8_text
 
 RECORD_FORMAT = "haptex-playback-record"
 RECORD_VERSION = "1.0"
+# A record is held in memory until it is written out (see Recorder): frames past this many bytes
+# are not recorded (warned once, counted in the record). About 0.55 KB a frame with the HAPTEX
+# array's 24 contactors: 13 h of playback; 17 bytes more a frame per contactor.
+MAX_RECORD_BYTES = 1 << 30
+LOG = logging.getLogger("haptex.play")
 
 
 class Recorder:
-    """Streams frames into a temporary HDF5 file; :meth:`close` renames it into place.
+    """Collects frames into an HDF5 file built in memory; :meth:`close` writes it to its name
+    (through a temporary file and a rename), :meth:`abort` drops it. Frames past
+    ``MAX_RECORD_BYTES`` are counted, not recorded (attribute ``frames_not_recorded``).
 
     Parameters
     ----------
@@ -75,16 +85,24 @@ class Recorder:
                  attrs: dict[str, Any] | None = None, chunk: int = 256) -> None:
         self.path = Path(path)
         check_replaceable(self.path)
-        self.tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
+        try:  # a folder the record cannot be written to is found now, not after the session
+            fd, probe = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise InputError(self.path, f"cannot create record ({exc.strerror or exc})") from None
         spec = dict(self._SPEC)
         spec.update({"a40": (np.float32, (n_contactors,)), "a320": (np.float32, (n_contactors,)),
                      "flags": (np.uint8, (n_contactors,)), "codes": (np.uint16, (2, n_channels)),
                      "packet": (np.uint8, (packet_size,))})
         self.spec = spec
-        try:
-            self.file = h5py.File(self.tmp, "w")
-        except OSError as exc:
-            raise InputError(self.path, f"cannot create record ({exc})") from None
+        frame_bytes = sum(np.dtype(dtype).itemsize * int(np.prod(shape)) for dtype, shape in spec.values())
+        self.max_frames = max(1, MAX_RECORD_BYTES // frame_bytes)
+        self.dropped = 0  # frames not recorded past max_frames
+        # Built in memory and written out whole by close() (playback.paths.replace_with_bytes):
+        # libhdf5 flushing into a full disk crashed the player after hundreds of lines of
+        # tracebacks, and no write can now delay a frame. (About 0.4 KB a frame: 60 MB an hour.)
+        self.file = h5py.File(f"haptex-record-{id(self)}", "w", driver="core", backing_store=False)
         self.frames = self.file.create_group("frames")
         for name, (dtype, shape) in spec.items():
             self.frames.create_dataset(name, shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype,
@@ -121,6 +139,12 @@ class Recorder:
 
         The arrays are kept by reference until the next flush: pass arrays nobody modifies.
         """
+        if self.n + self.pending >= self.max_frames:
+            if not self.dropped:
+                LOG.warning("%s: the record holds its limit of %d frames (%d MB in memory): later frames are not"
+                            " recorded", self.path, self.max_frames, MAX_RECORD_BYTES >> 20)
+            self.dropped += 1
+            return
         for key in self.spec:
             self._buf[key].append(frame[key])
         if self.pending >= (self.max_pending if self.hold else self.chunk):
@@ -148,21 +172,23 @@ class Recorder:
         g.attrs["description"] = "sqrt2 * (V40 sin(2 pi 40 t) + V320 sin(2 pi 320 t)) per device channel, volts"
 
     def close(self, attrs: dict[str, Any] | None = None) -> Path:
-        """Flush, write the final attributes and rename the file into place."""
+        """Flush, write the final attributes and write the file into place (a temporary file
+        and a rename: an error, such as a full disk, leaves no file and raises
+        :class:`InputError`)."""
         self.flush()
         if attrs:
             self.set_attrs(attrs)
+        self.file.attrs["frames_not_recorded"] = self.dropped
+        self.file.flush()
+        image = self.file.id.get_file_image()
         self.file.close()
-        os.replace(self.tmp, self.path)
+        replace_with_bytes(self.path, image, new_file_mode())
         self.closed = True
         return self.path
 
     def abort(self) -> None:
-        """Close and delete the temporary file."""
-        try:
-            self.file.close()
-        finally:
-            self.tmp.unlink(missing_ok=True)
+        """Drop the record (nothing was written to disk)."""
+        self.file.close()
 
     def __enter__(self) -> "Recorder":
         return self
