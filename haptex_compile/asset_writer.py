@@ -46,7 +46,7 @@ from haptex_compile.surface import Surface
 from haptex_compile.thresholds import SMOOTHING_HZ
 from haptex_compile.tables import Tables
 from playback.file_modes import new_file_mode
-from playback.paths import check_replaceable, replace_with_bytes
+from playback.paths import check_replaceable, replace_files
 from playback.text_files import utf8_text
 
 FORMAT_NAME = "haptex-tactile-asset"
@@ -159,17 +159,18 @@ def _table_chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
     return (1, 1, max(1, min(nj, TABLE_CHUNK_BYTES // (4 * ni))), ni)
 
 
-def write_asset(path: str | Path, content: AssetContent) -> None:
+def write_asset(path: str | Path, content: AssetContent, also: list[tuple] = ()) -> None:
     """Write `content` to `path` atomically (temp file + rename); an error leaves no file.
 
     The HDF5 file is built in memory and written out in one piece
-    (:func:`playback.paths.replace_with_bytes`): a full disk is then one ``OSError``, where
-    libhdf5 writing into it crashed the process.
+    (:func:`playback.paths.replace_files`): a full disk is then one ``OSError``, where libhdf5
+    writing into it crashed the process. `also`: more ``(path, bytes, mode)`` files written
+    with it, all or none (the asset's EXR).
     """
     path = Path(path)
     check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    replace_with_bytes(path, hdf5_image(lambda f: _fill(f, content)), new_file_mode())
+    replace_files([(path, hdf5_image(lambda f: _fill(f, content)), new_file_mode()), *also])
 
 
 def hdf5_image(fill: Callable[[h5py.File], None]) -> bytes:

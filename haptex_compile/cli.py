@@ -12,6 +12,8 @@ import click
 
 from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command, common_options, refuse_overwrites,
                                  show_progress, warn_ignored_options)
+from playback.file_modes import new_file_mode
+from playback.paths import replace_with_bytes
 from playback.stop_signals import STOP_SIGNALS, StopRequested, end_with_parent, exit_status
 
 LOG = logging.getLogger("haptex.compile")
@@ -53,13 +55,7 @@ def _write_dependency_file(md_path: str, lines: list[str]) -> None:
     UTF-8 are written as they are, as Make reads them (writing them as text was a
     UnicodeEncodeError traceback, and left the temporary file)."""
     Path(md_path).parent.mkdir(parents=True, exist_ok=True)  # as the assets' folders are
-    tmp = f"{md_path}.tmp{os.getpid()}"
-    try:
-        Path(tmp).write_bytes(("\n".join(lines) + "\n").encode("utf-8", "surrogateescape"))
-        os.replace(tmp, md_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    replace_with_bytes(md_path, ("\n".join(lines) + "\n").encode("utf-8", "surrogateescape"), new_file_mode())
 
 
 def _dependencies(spec: str, scene_path: str | None, kes: str | None, scene) -> list[str]:

@@ -24,6 +24,8 @@ from haptex_compile.sources import SourceOptions, SourceResult, load_source
 from haptex_compile.surface import Surface
 from haptex_compile.tables import (MAX_TABLE_NODES, TableGrid, Tables, build_tables, halve_grid, stored_speeds,
                                    table_grid)
+from playback.file_modes import new_file_mode
+from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
@@ -607,26 +609,30 @@ def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, se
                            source_kind=source.kind, report=report, lattice=source.lattice,
                            roughness=source.roughness, friction=source.friction, table_errors=table_errors,
                            source_image=source.source_image)
-    write_asset(out_path, content)
+    extra = []
+    if exr_path is not None:  # written with the asset, both or neither
+        Path(exr_path).parent.mkdir(parents=True, exist_ok=True)  # as the asset's folder is (write_asset)
+        check_replaceable(exr_path)
+        extra.append((exr_path, exr_maps(source.surface, tables, exr_speed, exr_direction, settings.frame_ms,
+                                         file_name=exr_path), new_file_mode()))
+    write_asset(out_path, content, also=extra)
     # Only the log has the times: the asset stays byte-identical from run to run.
     LOG.info("%s: tables in %.1f s (%d checked samples), asset written in %.1f s", source.name, t1 - t0,
              stats["n_check_samples"], time.perf_counter() - t1)
-    if exr_path is not None:
-        export_exr(exr_path, source.surface, tables, exr_speed, exr_direction, settings.frame_ms)
     return report
 
 
-def export_exr(path: str | Path, surface: Surface, tables: Tables, speed_mm_s: float, direction_deg: float,
-               frame_ms: float) -> None:
-    """Height plus a40/a320 maps (for one speed and direction) on the height map's pixel grid."""
-    from haptex_compile.io_exr import write_exr
+def exr_maps(surface: Surface, tables: Tables, speed_mm_s: float, direction_deg: float, frame_ms: float,
+             file_name: str | Path = "EXR") -> bytes:
+    """An EXR (its bytes) of the height plus a40/a320 maps (for one speed and direction) on the
+    height map's pixel grid."""
+    from haptex_compile.io_exr import exr_image
 
-    Path(path).parent.mkdir(parents=True, exist_ok=True)  # as the asset's folder is (write_asset)
     player = _as_player_tables(tables, frame_ms)
     ny, nx = surface.shape
     v, u = np.mgrid[0:ny, 0:nx] * surface.pixel_size_mm
     a40, a320, _ = player.interpolator(u.ravel(), v.ravel(), np.full(u.size, speed_mm_s), np.full(u.size, direction_deg))
-    write_exr(path, {"height": np.asarray(surface.height_um, np.float32),
-                     "a40": a40.reshape(ny, nx).astype(np.float32), "a320": a320.reshape(ny, nx).astype(np.float32)},
-              attributes={"haptex_speed_mm_s": f"{speed_mm_s:g}", "haptex_direction_deg": f"{direction_deg:g}",
-                          "haptex_units": "height, a40, a320 in micrometres"})
+    return exr_image({"height": np.asarray(surface.height_um, np.float32),
+                      "a40": a40.reshape(ny, nx).astype(np.float32), "a320": a320.reshape(ny, nx).astype(np.float32)},
+                     attributes={"haptex_speed_mm_s": f"{speed_mm_s:g}", "haptex_direction_deg": f"{direction_deg:g}",
+                                 "haptex_units": "height, a40, a320 in micrometres"}, file_name=file_name)

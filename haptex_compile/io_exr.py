@@ -2,8 +2,9 @@
 
 OpenCV's wheels are built without EXR support, so EXR goes through the OpenEXR library's own
 Python binding.  Files are written single-part, scanline, ZIP-compressed, float32 channels,
-atomically (a temporary file in the target directory, then :func:`os.replace`), so a failed
-or interrupted write never leaves a partial file and keeps an older one intact.  Identical
+made in memory and written atomically (:func:`playback.paths.replace_with_bytes`: a temporary
+file in the target directory, then :func:`os.replace`), so a failed or interrupted write never
+leaves a partial file and keeps an older one intact.  Identical
 inputs give byte-identical files (EXR stores no time stamp).
 """
 from __future__ import annotations
@@ -12,7 +13,6 @@ import contextlib
 import io
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Iterator
 
@@ -22,9 +22,9 @@ import OpenEXR
 from haptex_compile.errors import InputError
 from haptex_compile.native_output import captured_native_output
 from playback.file_modes import new_file_mode
-from playback.paths import check_replaceable
+from playback.paths import check_replaceable, replace_with_bytes
 
-__all__ = ["write_exr", "read_exr_channels", "EXR_MAGIC"]
+__all__ = ["write_exr", "exr_image", "read_exr_channels", "EXR_MAGIC"]
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 LOG = logging.getLogger("haptex.io")
@@ -45,6 +45,33 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
     ----------
     path : str or os.PathLike
         The output file; its directory must exist.  Replaced atomically if present.
+    channels, attributes
+        As for :func:`exr_image`, which makes the file's bytes.
+
+    Raises
+    ------
+    ValueError
+        As for :func:`exr_image`.
+    InputError
+        If the file cannot be written (missing directory, permissions, disk full).
+    """
+    image = exr_image(channels, attributes=attributes, file_name=path)
+    target = Path(path)
+    check_replaceable(target)
+    directory = target.parent if str(target.parent) else Path(".")
+    if not directory.is_dir():
+        raise InputError(path, "cannot write: the output directory does not exist")
+    replace_with_bytes(target, image, new_file_mode())
+
+
+def exr_image(channels: dict[str, np.ndarray], *, attributes: dict[str, str] | None = None,
+              file_name: str | os.PathLike = "EXR") -> bytes:
+    """The bytes of a single-part scanline EXR (ZIP) of 2-D maps as named float32 channels,
+    made in memory (:func:`write_exr` writes them; the compiler writes them beside the asset,
+    both or neither).
+
+    Parameters
+    ----------
     channels : dict of str to numpy.ndarray
         Channel name -> real 2-D array, all of the same shape [ny, nx]; stored as float32
         (e.g. ``{"height": height_um, "a40": a40_um}``).  EXR sorts channels by name.
@@ -57,7 +84,7 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
         For no channels, a bad channel name, arrays that are not real 2-D, differ in shape or
         have values that are not finite in float32, or bad attributes.
     InputError
-        If the file cannot be written (missing directory, permissions, disk full).
+        If the library fails (its message names `file_name`).
     """
     if not channels:
         raise ValueError("write_exr needs at least one channel")
@@ -91,41 +118,13 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
                              f"{sorted(_RESERVED)}, string value)")
         header[key] = text
 
-    target = Path(path)
-    check_replaceable(target)
-    directory = target.parent if str(target.parent) else Path(".")
-    if not directory.is_dir():
-        raise InputError(path, "cannot write: the output directory does not exist")
+    buffer = io.BytesIO()
     try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{target.name}.", suffix=".tmp")
-        os.close(fd)
-    except OSError as exc:
-        raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
-    try:
-        with _library_output(path):
-            if _utf8_name(Path(tmp)):
-                OpenEXR.File(header, stored).write(tmp)
-            else:  # (see _utf8_name)
-                buffer = io.BytesIO()
-                OpenEXR.File(header, stored).write(buffer)
-                Path(tmp).write_bytes(buffer.getbuffer())
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)  # the data is on disk before the name points at it
-        finally:
-            os.close(fd)
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, target)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
-        if isinstance(exc, RuntimeError):  # the library's own I/O errors
-            raise InputError(path, f"cannot write EXR: {_first_line(exc)}") from None
-        raise
+        with _library_output(file_name):
+            OpenEXR.File(header, stored).write(buffer)
+    except RuntimeError as exc:  # the library's own errors
+        raise InputError(file_name, f"cannot write EXR: {_first_line(exc)}") from None
+    return buffer.getvalue()
 
 
 @contextlib.contextmanager

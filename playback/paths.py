@@ -22,6 +22,7 @@ def check_replaceable(path: str | Path) -> None:
         mode = os.lstat(path).st_mode
     except OSError:  # not there (or unreadable: the write says why)
         check_folders(path)
+        check_name_length(path)
         return
     if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
@@ -40,32 +41,77 @@ def check_folders(path: str | Path) -> None:
             return
 
 
-def replace_with_bytes(path: str | Path, data: bytes | bytearray | memoryview, mode: int) -> None:
-    """Write `data` to `path` through a temporary file beside it and a rename: `path` holds
-    either its old content or all of `data`, never part of it. The data is on disk (fsync)
-    before the name points at it; the file gets `mode`. Any failure (a full disk, an
-    interrupt) removes the temporary file and is raised; the write's own as
-    :class:`InputError` naming `path` ("cannot be written: No space left on device").
+DEFAULT_NAME_MAX = 255  # bytes in a file name, where the file system does not say
+TEMPORARY_EXTRA = 14  # bytes a temporary name adds: "." + name + "." + 8 random + ".tmp"
+
+
+def name_max(folder: str | Path) -> int:
+    """The longest file name (bytes) the file system of `folder` (or of its nearest existing
+    folder above) takes."""
+    for above in [Path(folder).absolute(), *Path(folder).absolute().parents]:
+        if above.is_dir():
+            try:
+                return int(os.pathconf(above, "PC_NAME_MAX"))
+            except (OSError, ValueError, AttributeError):
+                break
+    return DEFAULT_NAME_MAX
+
+
+def check_name_length(path: str | Path) -> None:
+    """Raise :class:`InputError` if the name of `path` is longer than its file system takes:
+    found before the work, not when the output is written after it."""
+    size, limit = len(os.fsencode(Path(path).name)), name_max(Path(path).parent)
+    if size > limit:
+        raise InputError(path, f"cannot be written: its name is {size} bytes, over the file system's {limit}")
+
+
+def temporary_beside(path: str | Path) -> tuple[int, str]:
+    """``(fd, name)`` of a new temporary file in the folder of `path`, named ``.NAME.XXXXXXXX.tmp``
+    with NAME cut so that the name fits the file system (a valid name of 242 or more bytes
+    could not be written: its temporary name was too long)."""
+    path = Path(path)
+    room = max(1, name_max(path.parent) - TEMPORARY_EXTRA)
+    short = os.fsdecode(os.fsencode(path.name)[:room])
+    return tempfile.mkstemp(prefix=f".{short}.", suffix=".tmp", dir=path.parent)
+
+
+def replace_files(files: list[tuple[str | Path, bytes | bytearray | memoryview, int]]) -> None:
+    """Write each ``(path, data, mode)`` through a temporary file beside it and a rename, every
+    temporary file first: each path holds either its old content or all of its data, and a
+    failure before the renames (a full disk, an interrupt) leaves every path as it was, so the
+    outputs of one run are all written or none (``haptex-compile --exr`` wrote the asset and
+    then failed on the EXR). The data is on disk (fsync) before a name points at it; a file
+    gets its `mode`. The temporary files are removed on any failure, which is raised; the
+    writes' own as :class:`InputError` naming the path ("cannot be written: No space left on
+    device").
 
     The tools build HDF5 files in memory and write them out with this: libhdf5 writing into a
     full disk printed hundreds of lines of tracebacks while closing the file, then crashed the
     process (segmentation fault), where a plain write raises ``OSError`` (ENOSPC) once.
     """
-    path = Path(path)
+    staged: list[tuple[Path, str]] = []
+    current = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise InputError(path, f"cannot be written: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise InputError(path, f"cannot be written: {exc.strerror or exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        for path, data, mode in files:
+            current = Path(path)
+            fd, tmp = temporary_beside(current)
+            staged.append((current, tmp))
+            with os.fdopen(fd, "wb") as out:
+                out.write(data)
+                out.flush()
+                os.fsync(out.fileno())
+            os.chmod(tmp, mode)
+        for path, tmp in staged:
+            current = path
+            os.replace(tmp, path)
+    except BaseException as exc:
+        for _, tmp in staged:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and current is not None:
+            raise InputError(current, f"cannot be written: {exc.strerror or exc}") from None
         raise
+
+
+def replace_with_bytes(path: str | Path, data: bytes | bytearray | memoryview, mode: int) -> None:
+    """Write `data` to `path` atomically: :func:`replace_files` for one file."""
+    replace_files([(path, data, mode)])

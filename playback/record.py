@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +37,7 @@ import numpy as np
 
 from playback.errors import InputError
 from playback.file_modes import new_file_mode
-from playback.paths import check_replaceable, replace_with_bytes
+from playback.paths import check_replaceable, replace_with_bytes, temporary_beside
 from playback.text_files import utf8_text
 
 RECORD_FORMAT = "haptex-playback-record"
@@ -86,7 +85,7 @@ class Recorder:
         self.path = Path(path)
         check_replaceable(self.path)
         try:  # a folder the record cannot be written to is found now, not after the session
-            fd, probe = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+            fd, probe = temporary_beside(self.path)
             os.close(fd)
             os.unlink(probe)
         except OSError as exc:

@@ -95,3 +95,38 @@ def test_record_past_its_memory_limit_drops_later_frames_and_says_so(tmp_path, m
     assert n + dropped == 80 and 0 < n < 30  # 2 s of 25 ms frames
     out = CliRunner().invoke(inspect_main, [str(tmp_path / "r.h5")]).output
     assert f"{dropped} later frames sent and not recorded" in out
+
+
+@posix
+def test_compile_with_exr_writes_both_or_neither(tmp_path):
+    """The EXR (about 460 KB here) does not fit under the limit, the asset (about 170 KB) does:
+    neither is written and the older asset survives (before: the asset was written, then the
+    EXR failed)."""
+    spec = "brownian:H=0.7,size=200,pixel=20um,rms=5um,seed=1"
+    (tmp_path / "s.toml").write_text("[motion]\nspeeds_mm_s = [40, 80]\ndirections_deg = [0, 90]\ntolerance = 0.5\n")
+    (tmp_path / "a.tact.h5").write_bytes(b"older")
+    r = _run("haptex_compile.cli", "haptex-compile", [spec, "--scene", "s.toml", "-o", "a.tact.h5", "--exr", "a.exr"],
+             tmp_path, 300_000)
+    assert r.returncode == 1 and r.stderr.splitlines() == [
+        f"haptex-compile: error: {spec}: a.exr: cannot be written: File too large"], r.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tact.h5", "s.toml"]
+    assert (tmp_path / "a.tact.h5").read_bytes() == b"older"
+
+
+def test_names_up_to_the_file_system_limit_are_written_and_longer_refused_before_work(tmp_path):
+    """A name of 254 bytes is valid; its temporary name (14 bytes longer) was not: the compile
+    failed after its tables. A name over the limit is refused at once."""
+    from click.testing import CliRunner
+    from haptex_compile.cli import main
+
+    spec = "brownian:H=0.7,size=24,pixel=20um,rms=5um,seed=1"
+    (tmp_path / "s.toml").write_text("[motion]\nspeeds_mm_s = [40, 80]\ndirections_deg = [0, 90]\ntolerance = 0.5\n")
+    longest = "n" * 246 + ".tact.h5"  # 254 bytes
+    exr = "e" * 251 + ".exr"
+    r = CliRunner().invoke(main, [spec, "--scene", str(tmp_path / "s.toml"), "-o", str(tmp_path / longest),
+                                  "--exr", str(tmp_path / exr), "--md", str(tmp_path / ("d" * 253 + ".d"))])
+    assert r.exit_code == 0, r.output
+    assert {p.name for p in tmp_path.iterdir()} == {"s.toml", longest, exr, "d" * 253 + ".d"}
+    too_long = "n" * 250 + ".tact.h5"
+    r = CliRunner().invoke(main, [spec, "--scene", str(tmp_path / "s.toml"), "-o", str(tmp_path / too_long)])
+    assert r.exit_code == 2 and "its name is 258 bytes, over the file system's 255" in r.output

@@ -639,10 +639,13 @@ def test_write_exr_failure_keeps_the_old_file_and_leaves_no_temporary(tmp_path, 
         def __init__(self, *args, **kwargs):
             self._file = real_file(*args, **kwargs)
 
-        def write(self, name):
-            self._file.write(name)  # the temporary is complete ...
-            with open(name, "r+b") as handle:
-                handle.truncate(100)  # ... then damaged, and the run dies
+        def write(self, target):
+            self._file.write(target)  # the file's bytes are complete ...
+            if isinstance(target, (str, Path)):
+                with open(target, "r+b") as handle:
+                    handle.truncate(100)  # ... then damaged, and the run dies
+            else:  # (made in memory)
+                target.truncate(100)
             raise failure
 
     monkeypatch.setattr(io_exr.OpenEXR, "File", Failing)
