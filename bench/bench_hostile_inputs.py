@@ -4,7 +4,7 @@ Where ``bench_robustness`` damages files' bytes, this gives the tools inputs tha
 are absurd or contradictory: scenes, Kawabata files and Brownian specs with values at or past
 the ends of their ranges, height maps in the wrong unit by far, images of one pixel, option
 values and combinations that cannot be honoured, names and attributes holding terminal escape
-sequences. Each case runs the tool in its own process (``python -c``, as the console scripts do)
+sequences, names at the file system's length limit, and a full disk (a file-size limit). Each case runs the tool in its own process (``python -c``, as the console scripts do)
 with a time limit, and is classed by what a user sees:
 
 * ``refused``: exit status 1 or 2, one line on stderr (``TOOL: error: ...``), no output file;
@@ -43,11 +43,14 @@ TOOLS = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compi
 TIME_LIMIT_S = 300.0
 OWN_LINE = re.compile(r"^haptex(\.\w+)*: (WARNING|INFO|ERROR): ")
 SPEC = "brownian:H=0.7,size=24,pixel=20um,rms=5um,seed=1"
+SPEC_64 = "brownian:H=0.7,size=64,pixel=20um,rms=5um,seed=1"  # an asset of 57 KB (tiny scene)
+SPEC_200 = "brownian:H=0.7,size=200,pixel=20um,rms=5um,seed=1"  # 171 KB, its EXR 463 KB
 ODD = os.fsdecode(b"n\xff\xfe #$1")  # a file name's bytes need not be UTF-8
 KES = REPO / "samples" / "kes" / "cotton_poplin.kes.json"
 # (name, what the case should give, tool, arguments ({d}: the case's folder), files to make
-# there first: name -> text, bytes or a function of the path)
-Case = tuple[str, str, str, list[str], dict[str, object]]
+# there first: name -> text, bytes or a function of the path[, a file-size limit in bytes: a
+# write past it fails as on a full disk])
+Case = tuple
 
 
 def _npy(scale: float, shape=(32, 32)) -> Callable[[Path], None]:
@@ -160,6 +163,14 @@ def cases() -> list[Case]:
          {"i.png": _png((64, 64))}),
         ("-o the input", "refused", "haptex-compile", ["{d}/h.npy", "-o", "{d}/h.npy"], {"h.npy": _npy(5.0)}),
         ("input named with an escape sequence", "refused", "haptex-compile", ["{d}/no\x1b[31mne.npy", *out], {}),
+        ("outputs named with 254 and 255 bytes (-o, --exr, --md)", "accepted", "haptex-compile",
+         [SPEC, "-o", "{d}/" + "n" * 246 + ".tact.h5", "--exr", "{d}/" + "e" * 251 + ".exr", "--md",
+          "{d}/" + "d" * 253 + ".d", *tiny], scene("")),
+        ("-o named with 258 bytes", "refused", "haptex-compile", [SPEC, "-o", "{d}/" + "n" * 250 + ".tact.h5", *tiny],
+         scene("")),
+        ("full disk (file-size limit 20 KB)", "refused", "haptex-compile", [SPEC_64, *out, *tiny], scene(""), 20_000),
+        ("full disk for --exr only (limit 300 KB)", "refused", "haptex-compile",
+         [SPEC_200, *out, "--exr", "{d}/o.exr", *tiny], scene(""), 300_000),
         ("names with bytes that are not UTF-8, a space, '#' and '$'", "accepted", "haptex-compile",
          [f"{{d}}/{ODD}.npy", "-o", f"{{d}}/{ODD}.tact.h5", "--exr", f"{{d}}/{ODD}.exr", "--md", f"{{d}}/{ODD}.d",
           *tiny, "--pixel-size", "20um"], {f"{ODD}.npy": _npy(5.0)} | scene("")),
@@ -181,6 +192,8 @@ def cases() -> list[Case]:
          {"a.tact.h5": _asset, "t.csv": "t_s,u_mm,v_mm,phi_deg\n0,0,0,0\n0.1,nan,0,0\n0.2,1e300,0,0\n0.5,4,0,0\n1,8,0,0\n"}),
         ("--record, names with bytes that are not UTF-8", "accepted", "haptex-play",
          [f"{{d}}/{ODD}.tact.h5", *sweep, "--record", f"{{d}}/{ODD}.h5"], {f"{ODD}.tact.h5": _asset}),
+        ("--record into a full disk (limit 20 KB)", "refused", "haptex-play", [*play, *sweep, "--record", "{d}/r.h5"],
+         {"a.tact.h5": _asset}, 20_000),
         ("profile: missing", "refused", "haptex-play", [*play, *sweep, "--profile", "{d}/none.toml"], {"a.tact.h5": _asset}),
         # the inspector
         ("asset: escape sequences and 5000 characters in attributes", "accepted", "haptex-inspect", ["{d}/b.tact.h5"],
@@ -231,6 +244,18 @@ def _outcome(tool: str, rc: int | None, stderr: str, new_outputs: list[Path]) ->
         bool(OWN_LINE.match(line)) for line in lines) else ("refused in many lines", said)
 
 
+def _file_size_limit(limit_bytes: int) -> Callable[[], None]:
+    """For the child: files may not grow past `limit_bytes` (a write past it fails with EFBIG,
+    as on a full disk, SIGXFSZ being ignored)."""
+    def apply() -> None:
+        import resource
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return apply
+
+
 def tool_command(tool: str, code_dir: Path | None = None) -> tuple[list[str], dict[str, str]]:
     """The command line (before the tool's arguments) and environment that run `tool` as its
     console script does, with the tools of the checkout `code_dir` (None: the installed ones)."""
@@ -250,7 +275,7 @@ def tool_command(tool: str, code_dir: Path | None = None) -> tuple[list[str], di
 
 def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
     """Run `case` in the new `folder`, with the tools of `code_dir` (None: the installed ones)."""
-    name, expected, tool, args, files = case
+    name, expected, tool, args, files, *limit = case
     folder.mkdir()
     _make(folder, files)
     before = set(folder.iterdir())
@@ -259,7 +284,8 @@ def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
     t0 = time.perf_counter()
     try:
         r = subprocess.run([*command, *argv], capture_output=True, text=True, cwd=folder,
-                           timeout=TIME_LIMIT_S, errors="replace", env=env)
+                           timeout=TIME_LIMIT_S, errors="replace", env=env,
+                           preexec_fn=_file_size_limit(limit[0]) if limit else None)
         rc, stderr = r.returncode, r.stderr
     except subprocess.TimeoutExpired as exc:
         rc, stderr = None, exc.stderr if isinstance(exc.stderr, str) else (exc.stderr or b"").decode(errors="replace")
