@@ -144,19 +144,56 @@ def _light_field(img: np.ndarray, sigma_px: float) -> tuple[np.ndarray, float, f
     return small, fx, fy
 
 
+REMAP_ROWS = 16384  # rows of 4096 points per cv2.remap call (its limit is 32766)
+REMAP_SRC_MAX = 32766  # cv2.remap's limit on the source's sides too
+REMAP_BLOCK = 30000  # larger sources are sampled a block of this many px a side at a time
+REMAP_MARGIN = 4  # px beyond a block that its points' cubic kernels reach (2 needed)
+
+
+def _remap_points_in_blocks(src: np.ndarray, x: np.ndarray, y: np.ndarray, interpolation: int,
+                            border: int, border_value: float) -> np.ndarray:
+    """:func:`_remap_points` for a source with a side over ``REMAP_SRC_MAX`` (a flatbed scan
+    of 33 000 px was an OpenCV assertion traceback): the points are grouped by the block of
+    the source they fall in and sampled from that block plus a margin, which the kernel does not
+    reach past, so the values are the whole source's. Points beyond the source go with the
+    block at its edge, which holds that edge, so the border rule is the same."""
+    rows, cols = src.shape
+    out = np.empty(x.size, np.float32)
+    bx = np.clip(np.floor(x / REMAP_BLOCK), 0, (cols - 1) // REMAP_BLOCK).astype(np.int64)
+    by = np.clip(np.floor(y / REMAP_BLOCK), 0, (rows - 1) // REMAP_BLOCK).astype(np.int64)
+    key = by * (cols // REMAP_BLOCK + 1) + bx
+    for block in np.unique(key):
+        sel = np.nonzero(key == block)[0]
+        r0 = max(0, int(by[sel[0]]) * REMAP_BLOCK - REMAP_MARGIN)
+        c0 = max(0, int(bx[sel[0]]) * REMAP_BLOCK - REMAP_MARGIN)
+        part = src[r0:(int(by[sel[0]]) + 1) * REMAP_BLOCK + REMAP_MARGIN,
+                   c0:(int(bx[sel[0]]) + 1) * REMAP_BLOCK + REMAP_MARGIN]
+        out[sel] = _remap_points(np.ascontiguousarray(part), x[sel] - c0, y[sel] - r0, interpolation, border,
+                                 border_value)
+    return out
+
+
 def _remap_points(src: np.ndarray, x: np.ndarray, y: np.ndarray, interpolation: int,
                   border: int, border_value: float = 0.0) -> np.ndarray:
     """Sample `src` at (x, y) px (any shape) with cv2.remap; float32 result of the same shape.
 
-    cv2.remap limits each map side to < 32767, so the points are laid out 4096 per row.
+    cv2.remap limits each map side to < 32767, so the points are laid out 4096 per row, and
+    at most ``REMAP_ROWS`` rows a call (a 48 Mpx photo's tile average samples 200 M points:
+    49 000 rows, and OpenCV's assertion was a traceback).
     """
     shape = x.shape
+    if max(src.shape) > REMAP_SRC_MAX:
+        return _remap_points_in_blocks(src, np.ravel(x), np.ravel(y), interpolation, border,
+                                       border_value).reshape(shape)
     n = x.size
     width = 4096
     pad = (-n) % width
     mx = np.concatenate([x.ravel(), np.zeros(pad)]).astype(np.float32).reshape(-1, width)
     my = np.concatenate([y.ravel(), np.zeros(pad)]).astype(np.float32).reshape(-1, width)
-    out = cv2.remap(src, mx, my, interpolation, borderMode=border, borderValue=border_value)
+    out = np.empty(mx.shape, np.float32)
+    for r0 in range(0, mx.shape[0], REMAP_ROWS):
+        rows = slice(r0, r0 + REMAP_ROWS)
+        out[rows] = cv2.remap(src, mx[rows], my[rows], interpolation, borderMode=border, borderValue=border_value)
     return out.ravel()[:n].reshape(shape)
 
 

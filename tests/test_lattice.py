@@ -347,3 +347,56 @@ def test_real_fabric_crops_are_periodic_and_self_similar(shared_fabrics):
         assert self_similarity(img.astype(float), 0.5 * (lat.t1_px + lat.t2_px)) < \
             min(self_similarity(img.astype(float), lat.t1_px),
                 self_similarity(img.astype(float), lat.t2_px))
+
+
+def test_remap_points_in_several_calls_is_exact_on_a_linear_image(monkeypatch):
+    """cv2.remap refuses maps of 32767 rows or more: a 48 Mpx photo's tile average (200 M
+    points, 49 000 rows of 4096) was an OpenCV assertion traceback. The points now go in blocks
+    of rows; bilinear sampling of a linear image is exact, across the blocks' seams too."""
+    from haptex_compile import tiles
+
+    monkeypatch.setattr(tiles, "REMAP_ROWS", 2)  # 5 blocks for these 4096 x 9 + 17 points
+    yy, xx = np.mgrid[0:300, 0:400].astype(np.float32)
+    image = 2.0 * xx + 3.0 * yy
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 399, 4096 * 9 + 17), rng.uniform(0, 299, 4096 * 9 + 17)
+    got = tiles._remap_points(image, x, y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+    # (cv2's bilinear weights are quantised to 1/32 of a pixel: 2 x 1/64 + 3 x 1/64 at most)
+    np.testing.assert_allclose(got, 2.0 * x + 3.0 * y, atol=5 / 64 + 1e-3)
+
+
+def test_remap_points_on_a_source_wider_than_opencv_takes():
+    """cv2.remap refuses sources of 32767 px a side or more (a flatbed scan of 33 000 px was an
+    OpenCV assertion traceback): such sources are sampled in blocks. Bilinear sampling of a
+    linear image is exact, across the blocks' seams too; points beyond the source get the
+    border value."""
+    from haptex_compile import tiles
+
+    rows, cols = 16, 33_000
+    image = 2.0 * np.arange(cols, dtype=np.float32)[None, :] + 1.0 + 3.0 * np.arange(rows, dtype=np.float32)[:, None]
+    rng = np.random.default_rng(1)
+    x = np.concatenate([rng.uniform(1, cols - 2, 3000), tiles.REMAP_BLOCK + np.linspace(-3, 3, 61)])
+    y = rng.uniform(1, rows - 2, x.size)
+    got = tiles._remap_points(image, x, y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+    np.testing.assert_allclose(got, 2.0 * x + 1.0 + 3.0 * y, atol=5 / 64 + 1e-3, rtol=1e-6)
+    beyond = tiles._remap_points(image, np.array([-5.0, cols + 5.0]), np.array([5.0, 5.0]), cv2.INTER_LINEAR,
+                                 cv2.BORDER_CONSTANT, float("nan"))
+    assert np.isnan(beyond).all()
+
+
+@pytest.mark.parametrize("interpolation", [cv2.INTER_LINEAR, cv2.INTER_CUBIC])
+def test_remap_points_in_blocks_equals_one_call(monkeypatch, interpolation):
+    """The blocks give what one call on the whole source gives (cubic too: its 4 x 4 taps stay
+    within a block and its margin), shown with blocks made small."""
+    from haptex_compile import tiles
+
+    rng = np.random.default_rng(2)
+    image = cv2.GaussianBlur(rng.standard_normal((300, 1000)).astype(np.float32), (0, 0), 3.0)
+    x, y = rng.uniform(-3, 1002, 20_000), rng.uniform(-3, 302, 20_000)
+    whole = tiles._remap_points(image, x, y, interpolation, cv2.BORDER_REPLICATE)
+    monkeypatch.setattr(tiles, "REMAP_SRC_MAX", 500)
+    monkeypatch.setattr(tiles, "REMAP_BLOCK", 128)
+    blocks = tiles._remap_points(image, x, y, interpolation, cv2.BORDER_REPLICATE)
+    # (positions are quantised to 1/32 px from coordinates shifted by whole pixels: the same
+    # steps up to float32 rounding of the positions)
+    np.testing.assert_allclose(blocks, whole, atol=2e-3 * float(np.abs(image).max()))
