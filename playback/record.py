@@ -21,8 +21,9 @@ contactors, m = device channels, L = packet bytes:
 * ``/frames/sequence`` uint32 [n], ``/frames/packet`` uint8 [n, L]: what went over the wire
 * ``/waveforms/volts`` float32 [samples, m] and ``/waveforms/t_s`` (only with ``--waveforms``)
 
-Root attributes describe the run (asset, mode, device, profile JSON, counters). The file is
-written to a temporary name in the same folder and renamed when complete.
+Root attributes describe the run (asset, mode, device, profile JSON, counters;
+``frames_not_recorded``: frames sent past the record's size limit). The file is built in memory
+and written, when complete, to a temporary name in the same folder and renamed.
 """
 from __future__ import annotations
 
@@ -100,7 +101,7 @@ class Recorder:
         self.dropped = 0  # frames not recorded past max_frames
         # Built in memory and written out whole by close() (playback.paths.replace_with_bytes):
         # libhdf5 flushing into a full disk crashed the player after hundreds of lines of
-        # tracebacks, and no write can now delay a frame. (About 0.4 KB a frame: 60 MB an hour.)
+        # tracebacks, and no write can now delay a frame (see MAX_RECORD_BYTES for the memory).
         self.file = h5py.File(f"haptex-record-{id(self)}", "w", driver="core", backing_store=False)
         self.frames = self.file.create_group("frames")
         for name, (dtype, shape) in spec.items():
@@ -194,6 +195,6 @@ class Recorder:
 
     def __exit__(self, *exc_info: object) -> None:
         """A record not closed by then is unfinished (the run failed before it, or was stopped
-        before it began): its temporary file is deleted, not left beside the record's name."""
+        before it began): it is dropped, and nothing is left beside the record's name."""
         if not self.closed:
             self.abort()

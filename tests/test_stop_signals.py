@@ -176,7 +176,7 @@ def test_compile_jobs_stopped_drop_queued_inputs(tmp_path):
     proc.send_signal(signal.SIGTERM)
     code, out, err = _finish(proc)
     assert code == 143 and "haptex-compile: error: interrupted by SIGTERM" in err and "Traceback" not in err
-    assert time.monotonic() - t0 < 4.0  # (one input takes 5-20 s)
+    assert time.monotonic() - t0 < 5.0  # (measured 0.1-0.2 s; one input takes 5-20 s, and before, 6.4 s)
     assert not (tmp_path / "o").exists() or list((tmp_path / "o").iterdir()) == []
 
 
