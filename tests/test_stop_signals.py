@@ -227,3 +227,20 @@ def test_inspect_into_a_closed_pipe_stops_quietly(tmp_path, asset_path):
     err = proc.stderr.read()
     proc.wait(timeout=120)
     assert proc.returncode == 128 + signal.SIGPIPE and err == "", err
+
+
+def test_play_live_stopped_before_any_sample_says_no_frames(tmp_path, asset_path):
+    """--live waiting for its first sample, then SIGTERM: a clean stop whose summary says no frame
+    was sent (it read "render median nan µs (p99 nan)"), and the record is kept."""
+    code = "import sys; from playback.cli import main; sys.argv[0] = 'haptex-play'; main()"
+    proc = subprocess.Popen([sys.executable, "-c", code, str(asset_path), "--live", "--device", "null", "--record", "r.h5",
+                             "-v"], cwd=tmp_path, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    for line in proc.stderr:
+        if "waiting for the first trajectory sample" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    code_, out, err = _finish(proc)
+    assert code_ == 0 and "no frames sent" in out and "stopped by SIGTERM" in out and "nan" not in out, out + err
+    with h5py.File(tmp_path / "r.h5") as f:
+        assert f["frames/t_s"].shape == (0,) and f.attrs["stopped_by"] == "SIGTERM"
