@@ -28,17 +28,34 @@ def check_replaceable(path: str | Path) -> None:
         kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
         raise InputError(path, f"is {kind}, not a file: outputs are written to a temporary file and renamed"
                                " over their name, which would replace it")
+    _check_writable(path, Path(path).absolute().parent)  # (the temporary file is made in its folder)
 
 
 def check_folders(path: str | Path) -> None:
-    """Raise :class:`InputError` if the nearest existing folder above `path` is a file: the
-    write would fail there, after all the work (``-o a.tact.h5/x.tact.h5`` failed after the
-    tables with "[Errno 17] File exists")."""
+    """Raise :class:`InputError` if the nearest existing folder above `path` is a file, or, when
+    `path` is not there yet, one this process may not write in (read-only file system,
+    permissions): the write would fail there, after all the work (``-o a.tact.h5/x.tact.h5``
+    failed after the tables with "[Errno 17] File exists"; an output on a read-only file system
+    after them with "Read-only file system"). An existing file may be written in place (a
+    packet sink such as /dev/null) wherever it is."""
     for above in Path(path).absolute().parents:
         if above.exists():
             if not above.is_dir():
                 raise InputError(path, f"cannot be written: {above} is a file, not a folder")
+            if not os.path.lexists(path):
+                _check_writable(path, above)
             return
+
+
+def _check_writable(path: str | Path, folder: Path) -> None:
+    """Raise :class:`InputError` naming `path` if this process may not create files in `folder`."""
+    if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):  # (EROFS even for root)
+        try:
+            read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        except (OSError, AttributeError):
+            read_only = False
+        raise InputError(path, f"cannot be written: {folder} is on a read-only file system" if read_only
+                         else f"cannot be written: no permission to write in {folder}")
 
 
 DEFAULT_NAME_MAX = 255  # bytes in a file name, where the file system does not say

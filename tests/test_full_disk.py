@@ -130,3 +130,33 @@ def test_names_up_to_the_file_system_limit_are_written_and_longer_refused_before
     too_long = "n" * 250 + ".tact.h5"
     r = CliRunner().invoke(main, [spec, "--scene", str(tmp_path / "s.toml"), "-o", str(tmp_path / too_long)])
     assert r.exit_code == 2 and "its name is 258 bytes, over the file system's 255" in r.output
+
+
+def test_outputs_in_a_folder_that_cannot_be_written_are_refused_before_work(tmp_path, monkeypatch):
+    """An output on a read-only file system (or in a folder without write permission) failed
+    after all the work; now it is refused at once. os.access is made to say no for one folder
+    (a read-only mount needs root); an existing file is still written in place (/dev/null as a
+    packet sink for a user who may not write in /dev)."""
+    from click.testing import CliRunner
+    from haptex_compile import compile as compile_module
+    from haptex_compile.cli import main
+    from playback.cli import main as play_main
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) in (locked, Path("/dev"))
+                        else real_access(p, mode, **kw))
+    monkeypatch.setattr(compile_module, "build_checked_tables", lambda *a, **k: pytest.fail("the work began"))
+    spec = "brownian:H=0.7,size=24,pixel=20um,rms=5um,seed=1"
+    for option, name in (("-o", "a.tact.h5"), ("--md", "a.d"), ("--exr", "a.exr")):
+        args = [spec, "-o", str(locked / name)] if option == "-o" else [spec, "-o", str(tmp_path / "ok.tact.h5"),
+                                                                        option, str(locked / name)]
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 2 and f"cannot be written: no permission to write in {locked}" in r.output, r.output
+    asset = write_test_asset(tmp_path / "p.tact.h5")
+    r = CliRunner().invoke(play_main, [str(asset), "--device", "null", "--fast", "--sweep", "speed=80,duration=0.2",
+                                       "--record", str(locked / "r.h5")])
+    assert r.exit_code == 2 and "no permission to write in" in r.output
+    r = CliRunner().invoke(play_main, [str(asset), "--device", "file:/dev/null", "--fast", "--sweep", "speed=80,duration=0.2"])
+    assert r.exit_code == 0, r.output
