@@ -51,6 +51,18 @@ def worker_count(processes: int | None = None) -> int:
     return max(1, int(processes))
 
 
+def _quiet_opencv_threads() -> None:
+    """OpenCV single-threaded in this process before it forks: a forked worker inherits the
+    state of every lock, and one held at the fork by an OpenCV worker thread is never released
+    in the child (a CI run hung for good: a light-search worker waited in cv2.resize on such a
+    lock). Setting one thread joins OpenCV's workers. Measured, OpenCV on one thread compiled
+    the weave and gravel samples in 0.94 and 0.98 of the time (best of 2), the tools' own
+    processes and threads taking the cores anyway."""
+    cv2 = sys.modules.get("cv2")
+    if cv2 is not None and cv2.getNumThreads() != 1:
+        cv2.setNumThreads(1)
+
+
 def _set_fn(fn: Callable, parent_pid: int) -> None:
     global _FN
     _FN = fn
@@ -81,6 +93,7 @@ def forked_map(fn: Callable, processes: int | None = None) -> Iterator[Callable[
     if count <= 1:
         yield here
         return
+    _quiet_opencv_threads()
     # Fork: the workers inherit `fn` as it is (closures included); the initializer's
     # arguments are not pickled under fork.
     pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
@@ -166,6 +179,8 @@ def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | 
     be started or dies; an exception raised by either call reaches the caller. `there` must
     be deterministic, and its result picklable.
     """
+    if worker_count(processes) > 1:
+        _quiet_opencv_threads()
     child = _fork_child(there) if worker_count(processes) > 1 else None
     if child is None:
         return here(), there()

@@ -168,3 +168,21 @@ def test_a_worker_sent_sigterm_ends_quietly_and_the_caller_goes_on(kind, caplog,
         else:
             assert call_beside(lambda: fn(1), lambda: fn(2), 2) == (1, 4)
     assert "failed" in caplog.text
+
+
+@linux
+def test_opencv_runs_on_one_thread_before_workers_fork():
+    """A forked worker inherits every lock as it was: one held by an OpenCV worker thread at the
+    fork stays held in the child (a CI run hung for good in cv2.resize in a light-search
+    worker). OpenCV is made single-threaded before the fork, its workers joined."""
+    import cv2
+
+    cv2.setNumThreads(2)
+    image = np.random.default_rng(0).random((1200, 1200)).astype(np.float32)
+    cv2.GaussianBlur(image, (0, 0), 3.0)  # OpenCV's worker threads started
+    with forked_map(lambda k: (cv2.getNumThreads(), float(cv2.resize(image, (300, 300))[k, k])), 2) as map_:
+        out = map_([(k,) for k in range(4)])
+    assert cv2.getNumThreads() == 1 and all(n == 1 for n, _ in out)
+    assert [v for _, v in out] == [float(cv2.resize(image, (300, 300))[k, k]) for k in range(4)]
+    cv2.setNumThreads(2)
+    assert call_beside(cv2.getNumThreads, cv2.getNumThreads, 2) == (1, 1)
