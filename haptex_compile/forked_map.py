@@ -179,9 +179,10 @@ def call_beside(here: Callable[[], T], there: Callable[[], U], processes: int | 
     be started or dies; an exception raised by either call reaches the caller. `there` must
     be deterministic, and its result picklable.
     """
-    if worker_count(processes) > 1:
+    forking = worker_count(processes) > 1
+    if forking:
         _quiet_opencv_threads()
-    child = _fork_child(there) if worker_count(processes) > 1 else None
+    child = _fork_child(there) if forking else None
     if child is None:
         return here(), there()
     pid, read_fd = child

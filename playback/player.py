@@ -81,7 +81,7 @@ class RunSummary:
         """One-line human summary."""
         bad = sum(self.bad_samples.values())
         if not self.frames_sent:  # (no timing to show: "render median nan µs" said nothing)
-            return (f"no frames sent; bad samples {bad}, retries {self.retries}; stopped by {self.stopped_by}")
+            return f"no frames sent; bad samples {bad}, retries {self.retries}; stopped by {self.stopped_by}"
         return (f"{self.frames_sent} frames in {self.duration_s:.2f} s, {self.frames_late} late "
                 f"(worst {self.lateness_ms_max:+.2f} ms from window start), {self.frames_skipped} skipped; "
                 f"render median {self.render_us_median:.0f} µs (p99 {self.render_us_p99:.0f}); "
