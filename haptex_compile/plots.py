@@ -22,6 +22,7 @@ the Agg backend and without pyplot, so plotting never touches a display or globa
 from __future__ import annotations
 
 import json
+import logging
 import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,7 +43,16 @@ _MISSING_MPL = "matplotlib is needed for --plot: pip install haptex[plot]"
 
 
 def _matplotlib() -> Any:
-    """Import matplotlib (Agg) or raise the install hint."""
+    """Import matplotlib (Agg) or raise the install hint.
+
+    Its import's notices of a configuration folder it cannot write (HOME read-only, as on some
+    lab accounts: two lines on stderr, "mkdir -p failed ..." and "Matplotlib created a temporary
+    cache directory ...") are kept out of the tools' output: it falls back to a temporary
+    folder, and the plot is made the same.
+    """
+    mpl_log = logging.getLogger("matplotlib")
+    level = mpl_log.level
+    mpl_log.setLevel(logging.ERROR)
     try:
         import matplotlib
 
@@ -50,6 +60,8 @@ def _matplotlib() -> Any:
         from matplotlib.figure import Figure  # noqa: F401  (checks the install is complete)
     except ImportError:
         raise HaptexError(_MISSING_MPL) from None
+    finally:
+        mpl_log.setLevel(level)
     return matplotlib
 
 

@@ -370,3 +370,18 @@ def test_bench_runner_reports_successes_failures_and_timeouts(tmp_path):
         assert f"`bench/bench_{name}.py`" in text  # expected sections reported missing
     assert "![t](plots/bench_good_1.png)" in text
     assert (out.parent / "plots" / "bench_good_1.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_plot_with_an_unwritable_matplotlib_folder_prints_only_its_line(asset_path, tmp_path):
+    """HOME read-only (as on some lab accounts): matplotlib's import printed two lines of its own
+    on stderr ("mkdir -p failed ...", "Matplotlib created a temporary cache directory ...")."""
+    import os
+    import subprocess
+
+    code = "import sys; from haptex_compile.inspect_cli import main; sys.argv[0] = 'haptex-inspect'; main()"
+    r = subprocess.run([sys.executable, "-c", code, str(asset_path), "--plot", str(tmp_path / "p.png")],
+                       capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "MPLCONFIGDIR": str(asset_path / "below-a-file"),  # (under a file: cannot be made)
+                            "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert r.returncode == 0 and r.stderr == "" and r.stdout.strip() == f"wrote {tmp_path / 'p.png'}", r.stderr
+    _png_ok(tmp_path / "p.png")
