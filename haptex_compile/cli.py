@@ -14,7 +14,7 @@ from playback.cli_common import (EXIT_BAD_INPUT, FiniteFloat, PathParam, command
                                  show_progress, warn_ignored_options)
 from playback.file_modes import new_file_mode
 from playback.paths import replace_with_bytes
-from playback.stop_signals import STOP_SIGNALS, StopRequested, end_with_parent, exit_status
+from playback.stop_signals import StopRequested, end_with_parent, exit_now, exit_status, worker_signals
 
 LOG = logging.getLogger("haptex.compile")
 
@@ -79,17 +79,13 @@ def _worker_stop(signum: int, frame: object) -> None:
     print multiprocessing's traceback)."""
     if _COMPILING:
         raise StopRequested(signal.Signals(signum).name)
-    os._exit(128 + signum)
+    exit_now(signum)
 
 
 def _init_worker(parent_pid: int) -> None:
     global _IN_WORKER
     _IN_WORKER = True
-    # Ctrl-C reaches the whole process group: the parent alone handles it, and stops the workers.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    for name in STOP_SIGNALS:
-        if hasattr(signal, name) and signal.getsignal(getattr(signal, name)) is not signal.SIG_IGN:
-            signal.signal(getattr(signal, name), _worker_stop)
+    worker_signals(_worker_stop)
     end_with_parent(parent_pid)  # a parent killed outright (SIGKILL) stops its workers too
 
 

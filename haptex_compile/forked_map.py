@@ -32,7 +32,7 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import TypeVar
 
-from playback.stop_signals import end_with_parent, exit_on_stop_signals
+from playback.stop_signals import end_with_parent, worker_signals
 
 LOG = logging.getLogger("haptex.forked_map")
 T = TypeVar("T")
@@ -68,8 +68,7 @@ def _set_fn(fn: Callable, parent_pid: int) -> None:
     _FN = fn
     # Ctrl-C reaches the whole process group: the caller stops the pool, and a worker
     # interrupted on its own would only break it.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    exit_on_stop_signals()
+    worker_signals()
     end_with_parent(parent_pid)
 
 
@@ -151,8 +150,7 @@ def _fork_child(there: Callable[[], object]) -> tuple[int, int] | None:
     status = 1
     try:
         os.close(read_fd)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
-        exit_on_stop_signals()
+        worker_signals()  # the parent handles Ctrl-C
         try:
             payload = pickle.dumps((True, there()), pickle.HIGHEST_PROTOCOL)
         except BaseException as exc:  # noqa: BLE001 - handed to the parent

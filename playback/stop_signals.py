@@ -19,7 +19,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 STOP_SIGNALS = ("SIGTERM", "SIGHUP")  # (SIGHUP is absent on Windows: skipped there)
@@ -57,43 +57,54 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _signals(names: tuple[str, ...]) -> list[signal.Signals]:
-    return [getattr(signal, n) for n in names if hasattr(signal, n)]
+def set_handlers(handler: Callable[[int, object], None], names: tuple[str, ...] = STOP_SIGNALS
+                 ) -> dict[signal.Signals, object]:
+    """Give the signals `names` (those this platform has) `handler`, except those ignored (as
+    ``nohup`` ignores SIGHUP: they stay ignored); their previous handlers, to put back."""
+    previous = {}
+    for sig in (getattr(signal, n) for n in names if hasattr(signal, n)):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            previous[sig] = signal.signal(sig, handler)
+    return previous
+
+
+def _restore(previous: dict[signal.Signals, object]) -> None:
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
 
 
 @contextmanager
 def stop_signals_raise() -> Iterator[None]:
     """SIGTERM and SIGHUP raise :class:`StopRequested` in the main thread while in the context
     (the previous handlers come back after it). Signals the process was started with ignored
-    (``nohup`` ignores SIGHUP) stay ignored. Outside the main thread, nothing changes: Python
-    runs signal handlers there only."""
+    stay ignored. Outside the main thread, nothing changes: Python runs signal handlers there
+    only."""
     if not _in_main_thread():
         yield
         return
-    previous = {}
-    for sig in _signals(STOP_SIGNALS):
-        if signal.getsignal(sig) is not signal.SIG_IGN:
-            previous[sig] = signal.signal(sig, _raise_stop)
+    previous = set_handlers(_raise_stop)
     try:
         yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        _restore(previous)
 
 
-def _exit_now(signum: int, frame: object) -> None:
+def exit_now(signum: int, frame: object = None) -> None:
+    """End this process at once, quietly, with the shell's status for signal `signum` (a
+    signal handler)."""
     os._exit(128 + signum)
 
 
-def exit_on_stop_signals() -> None:
-    """In a worker process that holds no files of its own: SIGTERM and SIGHUP end it at once,
-    quietly, with the shell's status for the signal. Inherited from a parent under
-    :func:`stop_signals_raise`, they would raise :class:`StopRequested` instead, and a pool
-    worker waiting for work prints multiprocessing's traceback of it. The parent notices a lost
-    worker (and is being stopped itself when the signal went to the whole process group)."""
-    for sig in _signals(STOP_SIGNALS):
-        if signal.getsignal(sig) is not signal.SIG_IGN:
-            signal.signal(sig, _exit_now)
+def worker_signals(stop: Callable[[int, object], None] = exit_now) -> None:
+    """Signals in a worker process: Ctrl-C, which reaches the whole process group, is ignored
+    (the parent handles it, and stops its workers), and SIGTERM and SIGHUP go to `stop`. The
+    default ends the worker at once (:func:`exit_now`), for workers that hold no files of
+    their own. Inherited from a parent under :func:`stop_signals_raise`, they would raise
+    :class:`StopRequested` instead, and a pool worker waiting for work prints multiprocessing's
+    traceback of it. The parent notices a lost worker (and is being stopped itself when the
+    signal went to the whole process group)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    set_handlers(stop)
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2) option: a signal for this process when its parent dies
@@ -133,14 +144,10 @@ def deferred() -> Iterator[list[str]]:
     previous = {}
     _held.append(held)
     try:
-        for sig in _signals(("SIGINT",) + STOP_SIGNALS):
-            current = signal.getsignal(sig)
-            # Ignored signals stay ignored; SIGTERM/SIGHUP at their default (no
-            # stop_signals_raise around) would kill the process: held too, as the caller asks.
-            if current is not signal.SIG_IGN:
-                previous[sig] = signal.signal(sig, _hold)
+        # (SIGTERM/SIGHUP at their default, without stop_signals_raise around, would kill the
+        # process: held too, as the caller asks)
+        previous = set_handlers(_hold, ("SIGINT",) + STOP_SIGNALS)
         yield held
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        _restore(previous)
         _held.pop()
