@@ -165,12 +165,12 @@ def write_asset(path: str | Path, content: AssetContent, also: list[tuple] = ())
     The HDF5 file is built in memory and written out in one piece
     (:func:`playback.paths.replace_files`): a full disk is then one ``OSError``, where libhdf5
     writing into it crashed the process. `also`: more ``(path, bytes, mode)`` files written
-    with it, all or none (the asset's EXR).
+    with it, all or none (the asset's EXR); their folders are made as the asset's is.
     """
-    path = Path(path)
-    check_replaceable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    replace_files([(path, hdf5_image(lambda f: _fill(f, content)), new_file_mode()), *also])
+    for out in [path, *(entry[0] for entry in also)]:
+        check_replaceable(out)
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+    replace_files([(Path(path), hdf5_image(lambda f: _fill(f, content)), new_file_mode()), *also])
 
 
 def hdf5_image(fill: Callable[[h5py.File], None]) -> bytes:

@@ -25,7 +25,6 @@ from haptex_compile.surface import Surface
 from haptex_compile.tables import (MAX_TABLE_NODES, TableGrid, Tables, build_tables, halve_grid, stored_speeds,
                                    table_grid)
 from playback.file_modes import new_file_mode
-from playback.paths import check_replaceable
 
 LOG = logging.getLogger("haptex.compile")
 CHECK_SAMPLES_PER_FAMILY = 16
@@ -611,8 +610,6 @@ def compile_surface(source: SourceResult, out_path: str | Path, scene: Scene, se
                            source_image=source.source_image)
     extra = []
     if exr_path is not None:  # written with the asset, both or neither
-        Path(exr_path).parent.mkdir(parents=True, exist_ok=True)  # as the asset's folder is (write_asset)
-        check_replaceable(exr_path)
         extra.append((exr_path, exr_maps(source.surface, tables, exr_speed, exr_direction, settings.frame_ms,
                                          file_name=exr_path), new_file_mode()))
     write_asset(out_path, content, also=extra)

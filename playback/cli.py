@@ -99,14 +99,13 @@ def main(asset: str, device: str, profile_path: str | None, sweep: str | None, t
         source = LiveSource(sys.stdin, name="stdin")
     clock = VirtualClock() if fast else MonotonicClock()
     transport, emulator = make_transport(device, profile, clock)
-    with contextlib.ExitStack() as stack:
-        recorder = None
-        if record_path is not None:
-            from playback import protocol
+    if record_path is not None:
+        from playback import protocol
 
-            # (a run that fails before the record is finished leaves no temporary file)
-            recorder = stack.enter_context(Recorder(record_path, data.n_contactors, profile.n_channels,
-                                                    protocol.frame_size(profile.n_channels)))
+        recording = Recorder(record_path, data.n_contactors, profile.n_channels, protocol.frame_size(profile.n_channels))
+    else:
+        recording = contextlib.nullcontext()
+    with recording as recorder:  # (a run that fails before the record is finished leaves no file)
         player = Player(data, profile, transport, source, clock=clock, mode=mode, recorder=recorder,
                         lead_ms=lead_ms, prep_ms=prep_ms, realtime=realtime and not fast, max_frames=max_frames,
                         emulator=emulator, waveform_rate_hz=waveform_rate if waveforms else None)
