@@ -38,8 +38,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the repo root, for tests.asset_factory
 
-TOOLS = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compile.inspect_cli",
-         "haptex-play": "playback.cli"}
+from tests.asset_factory import tool_argv  # noqa: E402
+
 TIME_LIMIT_S = 300.0
 OWN_LINE = re.compile(r"^haptex(\.\w+)*: (WARNING|INFO|ERROR): ")
 SPEC = "brownian:H=0.7,size=24,pixel=20um,rms=5um,seed=1"
@@ -259,7 +259,7 @@ def _file_size_limit(limit_bytes: int) -> Callable[[], None]:
 def tool_command(tool: str, code_dir: Path | None = None) -> tuple[list[str], dict[str, str]]:
     """The command line (before the tool's arguments) and environment that run `tool` as its
     console script does, with the tools of the checkout `code_dir` (None: the installed ones)."""
-    code = f"import sys; from {TOOLS[tool]} import main; sys.argv[0] = {tool!r}; main()"
+    python, flag, code = tool_argv(tool)
     env = dict(os.environ)
     if code_dir is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(code_dir), *filter(None, [env.get("PYTHONPATH")])])
@@ -270,7 +270,7 @@ def tool_command(tool: str, code_dir: Path | None = None) -> tuple[list[str], di
                 f" {folder_s + '/__init__.py'!r}, submodule_search_locations=[{folder_s!r}]);"
                 " module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module);"
                 " sys.modules['haptex_compile.schemas'] = module; " + code)
-    return [sys.executable, "-c", code], env
+    return [python, flag, code], env
 
 
 def run_case(case: Case, folder: Path, code_dir: Path | None = None) -> dict:
@@ -301,13 +301,7 @@ def _cell(r: dict) -> str:
 
 
 def run(quick: bool = False, against: Path | None = None) -> str:
-    chosen = cases()[::3] if quick else cases()
-    rows, base = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for k, case in enumerate(chosen):
-            rows.append(run_case(case, Path(tmp) / f"case{k}"))
-            if against is not None:
-                base.append(run_case(case, Path(tmp) / f"base{k}", against))
+    rows, base = cases_with_baseline(cases()[::3] if quick else cases(), run_case, against)
     out = [f"{len(rows)} cases, each the tool in its own process (time limit"
            f" {TIME_LIMIT_S:g} s); a defect is any outcome other than the expected one (see the module docstring)"
            + (f"; baseline, same run: the tools of `{against}`." if against is not None else "."), "",
@@ -323,13 +317,28 @@ def run(quick: bool = False, against: Path | None = None) -> str:
     return "\n".join(out)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="every third case")
+def cases_with_baseline(chosen: list, run_case: Callable[..., dict], against: Path | None
+                        ) -> tuple[list[dict], list[dict]]:
+    """Each case's row from ``run_case(case, folder)`` in a new folder, and with `against` (a
+    checkout) the baseline's row from ``run_case(case, folder, against)`` right after it, in
+    the same run: (ours, the baseline's, empty without `against`)."""
+    rows, base = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, case in enumerate(chosen):
+            rows.append(run_case(case, Path(tmp) / f"case{k}"))
+            if against is not None:
+                base.append(run_case(case, Path(tmp) / f"base{k}", against))
+    return rows, base
+
+
+def main_with_baseline(run: Callable[..., str], doc: str, quick_help: str) -> None:
+    """The command line of a bench of the tools against a checkout: ``[--quick] [--against DIR]``."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--against", type=Path, help="a checkout whose tools are the baseline")
     args = parser.parse_args()
     print(run(quick=args.quick, against=args.against))
 
 
 if __name__ == "__main__":
-    main()
+    main_with_baseline(run, __doc__, "every third case")

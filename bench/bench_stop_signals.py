@@ -21,12 +21,10 @@ commit), in the same run, as the baseline.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -35,7 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the repo root, for tests.asset_factory
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_hostile_inputs import tool_command  # noqa: E402
+from bench_hostile_inputs import cases_with_baseline, main_with_baseline, tool_command  # noqa: E402
 
 KES = REPO / "samples" / "kes"
 WAIT_EXIT_S = 120.0
@@ -170,13 +168,7 @@ def _cells(r: dict) -> str:
 
 
 def run(quick: bool = False, against: Path | None = None) -> str:
-    chosen = [c for c in CASES if not quick or c[0] in QUICK]
-    rows, base = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for k, case in enumerate(chosen):
-            rows.append(run_case(case, Path(tmp) / f"case{k}"))
-            if against is not None:
-                base.append(run_case(case, Path(tmp) / f"base{k}", against))
+    rows, base = cases_with_baseline([c for c in CASES if not quick or c[0] in QUICK], run_case, against)
     head = "| case | tools | exit status | s to exit | last packet zero | record frames | files left | orphans | last line |"
     out = [f"{len(rows)} cases; the signal is sent once the tool is at work (see the module docstring)"
            + (f"; baseline, same run: the tools of `{against}`." if against is not None else "."), "",
@@ -188,13 +180,5 @@ def run(quick: bool = False, against: Path | None = None) -> str:
     return "\n".join(out)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="three cases")
-    parser.add_argument("--against", type=Path, help="a checkout whose tools are the baseline")
-    args = parser.parse_args()
-    print(run(quick=args.quick, against=args.against))
-
-
 if __name__ == "__main__":
-    main()
+    main_with_baseline(run, __doc__, "three cases")

@@ -6,6 +6,7 @@ writes them with :func:`haptex_compile.asset_writer.write_asset` (the format has
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Callable
 
@@ -23,6 +24,17 @@ speeds_mm_s = [40, 80]
 directions_deg = [0, 90]
 tolerance = 0.5
 """
+
+# The tools' console scripts and the modules whose main() they run.
+TOOL_MODULES = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compile.inspect_cli",
+                "haptex-play": "playback.cli"}
+
+
+def tool_argv(tool: str) -> list[str]:
+    """The command line, before its arguments, that runs `tool` in a fresh Python as its console
+    script does (the installed script need not be on PATH)."""
+    return [sys.executable, "-c", f"import sys; from {TOOL_MODULES[tool]} import main; sys.argv[0] = {tool!r}; main()"]
+
 
 AmplitudeFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 

@@ -5,7 +5,6 @@ import importlib
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -13,15 +12,11 @@ import numpy as np
 import pytest
 from asset_factory import TINY_SCENE as SCENE
 from asset_factory import TINY_SPEC as SPEC
-
-
-TOOL_MODULES = {"haptex-compile": "haptex_compile.cli", "haptex-inspect": "haptex_compile.inspect_cli",
-                "haptex-play": "playback.cli"}
+from asset_factory import TOOL_MODULES, tool_argv
 
 
 def run(tool: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    code = f"import sys; from {TOOL_MODULES[tool]} import main; sys.argv[0] = {tool!r}; main()"
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+    return subprocess.run([*tool_argv(tool), *args], capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
 def run_compile_limited(tmp_path: Path, *args: str, limit: int = 4 * 2 ** 30) -> tuple[int, str, int]:
@@ -32,9 +27,8 @@ def run_compile_limited(tmp_path: Path, *args: str, limit: int = 4 * 2 ** 30) ->
     import resource
 
     err = tmp_path / "stderr.txt"
-    code = "import sys; from haptex_compile.cli import main; sys.argv[0] = 'haptex-compile'; main()"
     with open(err, "w") as stderr:
-        child = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.DEVNULL, stderr=stderr,
+        child = subprocess.Popen([*tool_argv("haptex-compile"), *args], stdout=subprocess.DEVNULL, stderr=stderr,
                                  preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
         _, status, usage = os.wait4(child.pid, 0)
     return os.waitstatus_to_exitcode(status), err.read_text(), usage.ru_maxrss

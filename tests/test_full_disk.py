@@ -13,14 +13,13 @@ import os
 import resource
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from playback.errors import InputError
 from playback.paths import replace_with_bytes
-from asset_factory import write_test_asset
+from asset_factory import tool_argv, write_test_asset
 
 REPO = Path(__file__).resolve().parents[1]
 posix = pytest.mark.skipif(not hasattr(resource, "RLIMIT_FSIZE"), reason="POSIX file-size limits")
@@ -48,9 +47,8 @@ def _limited(limit_bytes: int):
     return apply
 
 
-def _run(tool_module: str, name: str, args: list[str], cwd: Path, limit_bytes: int) -> subprocess.CompletedProcess:
-    code = f"import sys; from {tool_module} import main; sys.argv[0] = {name!r}; main()"
-    return subprocess.run([sys.executable, "-c", code, *args], cwd=cwd, capture_output=True, text=True, timeout=300,
+def _run(tool: str, args: list[str], cwd: Path, limit_bytes: int) -> subprocess.CompletedProcess:
+    return subprocess.run([*tool_argv(tool), *args], cwd=cwd, capture_output=True, text=True, timeout=300,
                           preexec_fn=_limited(limit_bytes), env={**os.environ, "PYTHONPATH": str(REPO)})
 
 
@@ -58,7 +56,7 @@ def _run(tool_module: str, name: str, args: list[str], cwd: Path, limit_bytes: i
 def test_compile_into_a_full_disk_one_line_no_file(tmp_path):
     spec = "brownian:H=0.7,size=64,pixel=20um,rms=5um,seed=1"  # an asset of about 57 KB
     (tmp_path / "s.toml").write_text("[motion]\nspeeds_mm_s = [40, 80]\ndirections_deg = [0, 90]\ntolerance = 0.5\n")
-    r = _run("haptex_compile.cli", "haptex-compile", [spec, "--scene", "s.toml", "-o", "a.tact.h5"], tmp_path, 20_000)
+    r = _run("haptex-compile", [spec, "--scene", "s.toml", "-o", "a.tact.h5"], tmp_path, 20_000)
     assert r.returncode == 1, r.stderr[-2000:]
     assert r.stderr.splitlines() == [f"haptex-compile: error: {spec}: a.tact.h5: cannot be written: File too large"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
@@ -67,7 +65,7 @@ def test_compile_into_a_full_disk_one_line_no_file(tmp_path):
 @posix
 def test_play_record_into_a_full_disk_one_line_no_file(tmp_path):
     write_test_asset(tmp_path / "a.tact.h5")
-    r = _run("playback.cli", "haptex-play", ["a.tact.h5", "--device", "null", "--fast", "--sweep",
+    r = _run("haptex-play", ["a.tact.h5", "--device", "null", "--fast", "--sweep",
                                              "speed=80,duration=20", "--record", "r.h5"], tmp_path,
              (tmp_path / "a.tact.h5").stat().st_size + 50_000)  # the record of 800 frames is larger
     assert r.returncode == 1, r.stderr[-2000:]
@@ -105,7 +103,7 @@ def test_compile_with_exr_writes_both_or_neither(tmp_path):
     spec = "brownian:H=0.7,size=200,pixel=20um,rms=5um,seed=1"
     (tmp_path / "s.toml").write_text("[motion]\nspeeds_mm_s = [40, 80]\ndirections_deg = [0, 90]\ntolerance = 0.5\n")
     (tmp_path / "a.tact.h5").write_bytes(b"older")
-    r = _run("haptex_compile.cli", "haptex-compile", [spec, "--scene", "s.toml", "-o", "a.tact.h5", "--exr", "a.exr"],
+    r = _run("haptex-compile", [spec, "--scene", "s.toml", "-o", "a.tact.h5", "--exr", "a.exr"],
              tmp_path, 300_000)
     assert r.returncode == 1 and r.stderr.splitlines() == [
         f"haptex-compile: error: {spec}: a.exr: cannot be written: File too large"], r.stderr[-2000:]

@@ -378,8 +378,9 @@ def test_plot_with_an_unwritable_matplotlib_folder_prints_only_its_line(asset_pa
     import os
     import subprocess
 
-    code = "import sys; from haptex_compile.inspect_cli import main; sys.argv[0] = 'haptex-inspect'; main()"
-    r = subprocess.run([sys.executable, "-c", code, str(asset_path), "--plot", str(tmp_path / "p.png")],
+    from asset_factory import tool_argv
+
+    r = subprocess.run([*tool_argv("haptex-inspect"), str(asset_path), "--plot", str(tmp_path / "p.png")],
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "MPLCONFIGDIR": str(asset_path / "below-a-file"),  # (under a file: cannot be made)
                             "PYTHONPATH": str(Path(__file__).resolve().parents[1])})

@@ -19,7 +19,7 @@ import pytest
 from playback import protocol
 from playback.stop_signals import StopRequested, deferred, exit_status, stop_reason, stop_signals_raise
 from playback.trajectory import sweep_trajectory
-from asset_factory import write_test_asset
+from asset_factory import tool_argv, write_test_asset
 from test_playback_player import HookClock, play
 
 REPO = Path(__file__).resolve().parents[1]
@@ -105,14 +105,10 @@ def test_second_ctrl_c_during_the_zero_frame_is_held(tmp_path, asset_path):
         assert f["frames/t_s"].shape == (20,) and f.attrs["stopped_by"] == "Ctrl-C"
 
 
-TOOLS = {"haptex-compile": "haptex_compile.cli", "haptex-play": "playback.cli"}
-
-
 def _start(args: list[str], cwd: Path, ready: str) -> subprocess.Popen:
     """A tool (``args[0]``) in its own process, as its console script runs it, once its stderr
     has printed `ready` (by then its signal handlers are set)."""
-    code = f"import sys; from {TOOLS[args[0]]} import main; sys.argv[0] = {args[0]!r}; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, *args[1:]], cwd=cwd, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*tool_argv(args[0]), *args[1:]], cwd=cwd, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
     seen = []
     for line in proc.stderr:
@@ -219,8 +215,7 @@ def test_inspect_into_a_closed_pipe_stops_quietly(tmp_path, asset_path):
     """``haptex-inspect *.tact.h5 | head``: once the reader has gone, the tool stops with
     SIGPIPE's status and nothing on stderr (before: "Broken pipe" as an error line for every
     file after the pipe filled, and status 1)."""
-    command = [sys.executable, "-c", "import sys; from haptex_compile.inspect_cli import main;"
-               " sys.argv[0] = 'haptex-inspect'; main()", *[str(asset_path)] * 120]
+    command = [*tool_argv("haptex-inspect"), *[str(asset_path)] * 120]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout.readline().startswith(str(asset_path))
     proc.stdout.close()  # as head does after its lines
@@ -232,8 +227,7 @@ def test_inspect_into_a_closed_pipe_stops_quietly(tmp_path, asset_path):
 def test_play_live_stopped_before_any_sample_says_no_frames(tmp_path, asset_path):
     """--live waiting for its first sample, then SIGTERM: a clean stop whose summary says no frame
     was sent (it read "render median nan µs (p99 nan)"), and the record is kept."""
-    code = "import sys; from playback.cli import main; sys.argv[0] = 'haptex-play'; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, str(asset_path), "--live", "--device", "null", "--record", "r.h5",
+    proc = subprocess.Popen([*tool_argv("haptex-play"), str(asset_path), "--live", "--device", "null", "--record", "r.h5",
                              "-v"], cwd=tmp_path, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
     for line in proc.stderr:
